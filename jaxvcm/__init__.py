@@ -1,0 +1,13 @@
+"""jaxvcm: a differentiable Vertex Connection and Merging renderer for analytic water scenes."""
+
+__version__ = "0.1.0"
+
+from ._config import RenderConfig as RenderConfig
+from ._loader import SceneError as SceneError
+from ._loader import load_scene as load_scene
+from ._loader import scene_from_dict as scene_from_dict
+from ._render import Diagnostics as Diagnostics
+from ._render import pass_key as pass_key
+from ._render import render as render
+from ._render import render_pass as render_pass
+from ._scene import Scene as Scene

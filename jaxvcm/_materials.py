@@ -1,0 +1,97 @@
+"""Surface scattering: Lambertian, ideal mirror, smooth dielectric (exact Fresnel).
+
+Conventions (pbrt): wo points away from the surface towards where the path came from,
+wi away from the surface towards where it goes next; n is the geometric normal.
+`beta` factors are f |cos| / pdf. Transport mode: camera paths carry radiance, so
+refraction scales by 1 / eta^2 (eta = IOR of wi's side / IOR of wo's side);
+light paths (importance) do not.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from . import _sampling as S
+from . import _vec as V
+from ._scene import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR
+from ._vec import Vec3
+
+
+def fresnel_dielectric(cos_i, eta):
+    """Unpolarised Fresnel reflectance for |cos_i| with relative IOR eta = n_t / n_i.
+    Returns (R, cos_t); R = 1 under total internal reflection."""
+    cos_i = jnp.clip(jnp.abs(cos_i), 0.0, 1.0)
+    sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
+    tir = sin2_t >= 1.0
+    cos_t = jnp.sqrt(jnp.maximum(0.0, 1.0 - sin2_t))
+    r_par = (eta * cos_i - cos_t) / jnp.maximum(eta * cos_i + cos_t, 1e-30)
+    r_perp = (cos_i - eta * cos_t) / jnp.maximum(cos_i + eta * cos_t, 1e-30)
+    R = 0.5 * (r_par * r_par + r_perp * r_perp)
+    return jnp.where(tir, 1.0, R), cos_t
+
+
+class BSDFSample(NamedTuple):
+    wi: Vec3
+    weight: Array  # [C] f |cos| / pdf
+    pdf: Array  # solid-angle pdf (1 for delta lobes, by convention)
+    delta: Array  # specular lobe sampled
+    transmit: Array  # wi on the other side of the surface
+
+
+def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: bool = True
+                ) -> BSDFSample:
+    """Sample wi for material `kind` (a traced int selecting among the static kinds)."""
+    cos_o = V.dot(wo, n)
+    side = jnp.where(cos_o >= 0, 1.0, -1.0).astype(n.x.dtype)
+    ns = n * side  # normal on wo's side
+
+    # ---- Lambertian ----
+    loc = S.cosine_hemisphere(u1, u2)
+    wi_d = V.to_world(loc, ns)
+    pdf_d = S.cosine_hemisphere_pdf(loc.z)
+
+    # ---- mirror ----
+    wi_m = V.reflect(wo, ns)
+
+    # ---- dielectric: eta = n_t / n_i seen from wo's side ----
+    eta = jnp.where(cos_o >= 0, ior, 1.0 / ior)
+    R, cos_t = fresnel_dielectric(cos_o, eta)
+    refl = u_lobe < R
+    cos_i = jnp.abs(cos_o)
+    wi_t = -wo / eta + ns * (cos_i / eta - cos_t)
+    wi_t = V.normalize(wi_t)
+    wi_g = V.where(refl, wi_m, wi_t)
+    scale_t = 1.0 / (eta * eta) if radiance else 1.0
+    w_g = jnp.where(refl, 1.0, scale_t)
+
+    is_d = kind == MAT_DIFFUSE
+    is_m = kind == MAT_MIRROR
+    wi = V.where(is_d, wi_d, V.where(is_m, wi_m, wi_g))
+    C = albedo.shape[-1]
+    ones = jnp.ones((C,), n.x.dtype)
+    weight = jnp.where(is_d | is_m, albedo, w_g * ones)
+    pdf = jnp.where(is_d, pdf_d, jnp.where(is_m, 1.0, jnp.where(refl, R, 1.0 - R)))
+    delta = ~is_d
+    transmit = (kind == MAT_DIELECTRIC) & ~refl
+    # A diffuse sample exactly on the horizon carries nothing.
+    weight = jnp.where(is_d & (loc.z <= 0), 0.0, weight)
+    return BSDFSample(wi, weight, pdf, delta, transmit)
+
+
+def eval_bsdf(kind, albedo, wo: Vec3, wi: Vec3, n: Vec3) -> tuple[Array, Array]:
+    """f(wo, wi) |cos(wi, n)| and the solid-angle pdf of sampling wi; zero for delta lobes.
+    Lambertian surfaces are two-sided: wo and wi must lie on the same side."""
+    cos_o = V.dot(wo, n)
+    cos_i = V.dot(wi, n)
+    same = cos_o * cos_i > 0
+    is_d = (kind == MAT_DIFFUSE) & same
+    f = jnp.where(is_d, albedo * (S.INV_PI * jnp.abs(cos_i)), 0.0)
+    pdf = jnp.where(is_d, S.INV_PI * jnp.abs(cos_i), 0.0)
+    return f, pdf
+
+
+def is_delta(kind):
+    return (kind == MAT_DIELECTRIC) | (kind == MAT_MIRROR)

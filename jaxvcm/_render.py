@@ -1,0 +1,135 @@
+"""Pure-JAX render pass and the host-side progressive driver."""
+
+from __future__ import annotations
+
+import functools
+import time as _time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int, PRNGKeyArray
+
+from . import _camera
+from ._config import RenderConfig
+from ._integrator import N_UNIFORMS, trace_camera_paths
+from ._scene import Scene
+
+
+class Diagnostics(eqx.Module):
+    """Per-pass result flags (errors are values under jit)."""
+
+    nonfinite: Int[Array, ""]  # contributions that were NaN/Inf (zeroed; must be 0)
+    camera_paths: Int[Array, ""]  # number of camera paths traced
+    mean_length: Float[Array, ""]  # mean number of path vertices that existed
+
+
+def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig()
+                ) -> tuple[Float[Array, "H W C"], Diagnostics]:
+    """One independent pass: `config.spp` camera paths per pixel, returned as an unbiased
+    per-pixel radiance estimate. Pure and jit/vmap/grad-able (config is static)."""
+    cam = scene.camera
+    H, W, C = cam.height, cam.width, scene.channels
+    N = H * W * config.spp
+    dt = scene.camera.origin.dtype
+    k_cam, k_path = jax.random.split(key)
+    u_cam = jax.random.uniform(k_cam, (2, N), dt)
+    u = jax.random.uniform(k_path, (config.max_depth, N, N_UNIFORMS), dt)
+    pixel = jnp.arange(N, dtype=jnp.int32) % (H * W)
+    o, d = jax.vmap(_camera.generate_ray, in_axes=(None, 0, 0, 0))(cam, pixel, u_cam[0], u_cam[1])
+    state, vertices = trace_camera_paths(scene, config, o, d, u)
+    img = state.L.reshape(config.spp, H, W, C).mean(axis=0)
+    diag = Diagnostics(
+        nonfinite=jnp.sum(state.nonfinite),
+        camera_paths=jnp.asarray(N, jnp.int32),
+        mean_length=jnp.mean(jnp.sum(vertices.alive, axis=0).astype(dt)),
+    )
+    return img, diag
+
+
+@functools.partial(jax.jit, static_argnums=(2,))
+def _render_pass_jit(scene, key, config):
+    return render_pass(scene, key, config)
+
+
+def pass_key(seed: int, index: int) -> PRNGKeyArray:
+    """Key of pass `index` of a render with `seed`: independent of how passes are batched,
+    so resumed or sharded renders draw the same samples."""
+    return jax.random.fold_in(jax.random.key(seed), index)
+
+
+def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
+           time: float | None = None, seed: int = 0, snapshot_every: float | None = None,
+           out: str | None = None, config: RenderConfig | None = None, progress: bool = True,
+           exposure: float = 0.0, scene_path: str | None = None) -> np.ndarray:
+    """Progressive render: average independent passes until `passes` are done or `time`
+    seconds have elapsed (at least one pass). With `out`, writes EXR + PNG + JSON, and with
+    `snapshot_every` (seconds) writes atomic snapshots along the way, so a killed render
+    leaves its last snapshot intact."""
+    from . import _film
+
+    if passes is None and time is None:
+        passes = 16
+    if passes is not None and passes < 1:
+        raise ValueError(f"passes: must be >= 1, got {passes}")
+    if time is not None and not time > 0:
+        raise ValueError(f"time: must be > 0 seconds, got {time}")
+    config = config or RenderConfig(algorithm=algorithm)
+    if config.algorithm != algorithm:
+        raise ValueError(f"algorithm: {algorithm!r} disagrees with config.algorithm "
+                         f"{config.algorithm!r}")
+    acc = None
+    nonfinite = 0
+    t0 = _time.perf_counter()
+    last_snap = t0
+    bar = _film.Progress(total=passes, time_budget=time, enabled=progress)
+    i = 0
+    try:
+        while True:
+            img, diag = _render_pass_jit(scene, pass_key(seed, i), config)
+            img = np.asarray(img, dtype=np.float64)
+            nonfinite += int(diag.nonfinite)
+            acc = img if acc is None else acc + img
+            i += 1
+            now = _time.perf_counter()
+            bar.update(i, now - t0)
+            done = (passes is not None and i >= passes) or (time is not None and now - t0 >= time)
+            if out and snapshot_every is not None and not done and now - last_snap >= snapshot_every:
+                _film.write_outputs(out, (acc / i).astype(np.float32), _meta(
+                    scene, scene_path, config, i, now - t0, seed, nonfinite, snapshot=True),
+                    exposure)
+                last_snap = now
+            if done:
+                break
+    finally:
+        bar.close()
+    image = (acc / i).astype(np.float32)
+    if nonfinite:
+        import warnings
+
+        warnings.warn(f"render: {nonfinite} non-finite path contributions were zeroed")
+    if out:
+        _film.write_outputs(out, image, _meta(scene, scene_path, config, i,
+                                              _time.perf_counter() - t0, seed, nonfinite,
+                                              snapshot=False), exposure)
+    return image
+
+
+def _meta(scene, scene_path, config, passes, seconds, seed, nonfinite, snapshot):
+    import dataclasses
+    import hashlib
+
+    from . import __version__
+
+    h = None
+    if scene_path is not None:
+        with open(scene_path, "rb") as f:
+            h = hashlib.sha256(f.read()).hexdigest()
+    return {
+        "scene": scene_path, "scene_sha256": h, "scene_name": scene.name,
+        "algorithm": config.algorithm, "config": dataclasses.asdict(config),
+        "passes": passes, "seconds": round(seconds, 3), "seed": seed,
+        "nonfinite": nonfinite, "snapshot": snapshot, "version": __version__,
+        "width": scene.camera.width, "height": scene.camera.height,
+    }

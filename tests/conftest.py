@@ -1,0 +1,17 @@
+"""Test configuration: x64 available, strict dtype promotion, persistent compilation cache.
+
+x64 is enabled so that float64 oracles and float64 renders are possible; the renderer's
+own dtype comes from the scene (float32 by default), and strict promotion turns any
+accidental float32/float64 mixing inside the kernels into an error.
+"""
+
+import os
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+_cache = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".jax_cache")
+jax.config.update("jax_compilation_cache_dir", _cache)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
