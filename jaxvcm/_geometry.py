@@ -77,13 +77,21 @@ def intersect_spheres(s: Spheres, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, 
 
 
 # ---------------------------------------------------------------- water heightfield
-def water_height(w: Water, x, z):
-    """Surface height h(x, z) and its gradient (dh/dx, dh/dz); x, z broadcast with waves."""
-    arg = w.kx * x[..., None] + w.kz * z[..., None] + w.phase0
-    s, c = jnp.sin(arg), jnp.cos(arg)
-    h = w.level + jnp.sum(w.amp * s, axis=-1)
-    hx = jnp.sum(w.amp * w.kx * c, axis=-1)
-    hz = jnp.sum(w.amp * w.kz * c, axis=-1)
+def water_height(w: Water, x, z, grad: bool = True):
+    """Surface height h(x, z) and its gradient (dh/dx, dh/dz), elementwise in x, z.
+
+    The sum over the (static, few) waves is unrolled: every term is an elementwise op on
+    the batch, never a reduction over a short trailing axis (slow on CPU)."""
+    h = jnp.zeros_like(x) + w.level
+    hx = jnp.zeros_like(x)
+    hz = jnp.zeros_like(x)
+    for i in range(w.n_waves):
+        arg = w.kx[i] * x + w.kz[i] * z + w.phase0[i]
+        h = h + w.amp[i] * jnp.sin(arg)
+        if grad:
+            c = w.amp[i] * jnp.cos(arg)
+            hx = hx + w.kx[i] * c
+            hz = hz + w.kz[i] * c
     return h, hx, hz
 
 
@@ -93,8 +101,9 @@ def water_normal(w: Water, x, z) -> Vec3:
 
 
 def water_slab(w: Water) -> tuple[Array, Array]:
-    """y-range that contains the surface: level -/+ sum |A_i|."""
-    a = jnp.sum(jnp.abs(w.amp))
+    """y-range that contains the surface: level -/+ (sum |A_i| + a 1 mm pad, so that flat
+    water still has a slab of non-zero thickness to bracket its crossing in)."""
+    a = jnp.sum(jnp.abs(w.amp)) + 1e-3
     return w.level - a, w.level + a
 
 
@@ -133,7 +142,7 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, bis
     t1c = jnp.where(empty, t0 + 1.0, t1)
 
     def f(t):
-        h, _, _ = water_height(w, o.x + t * d.x, o.z + t * d.z)
+        h, _, _ = water_height(w, o.x + t * d.x, o.z + t * d.z, grad=False)
         return o.y + t * d.y - h
 
     ts = t0 + (t1c - t0) * (jnp.arange(steps + 1, dtype=o.x.dtype) / steps)
@@ -169,7 +178,7 @@ def inside_water(w: Water, p: Vec3) -> Array:
     if not w.enabled:
         return jnp.zeros(p.x.shape, bool)
     fp = w.footprint
-    h, _, _ = water_height(w, p.x, p.z)
+    h, _, _ = water_height(w, p.x, p.z, grad=False)
     return (p.x > fp[0]) & (p.x < fp[1]) & (p.z > fp[2]) & (p.z < fp[3]) & (p.y > w.floor) & (p.y < h)
 
 

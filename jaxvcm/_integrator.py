@@ -31,6 +31,7 @@ N_UNIFORMS = 9  # random numbers consumed per bounce (layout in `step`)
 
 class PathState(NamedTuple):
     o: Vec3  # origin of the current ray (already offset off its surface)
+    p_prev: Vec3  # the vertex the ray left (o without the offset): distances for pdfs
     d: Vec3  # unit direction of the current ray
     beta: Array  # [C] throughput of the path so far (estimator weight, carries gradients)
     L: Array  # [C] radiance gathered so far
@@ -67,7 +68,7 @@ def init_state(scene: Scene, o: Vec3, d: Vec3) -> PathState:
     dt = o.x.dtype
     C = scene.channels
     return PathState(
-        o=o, d=d,
+        o=o, p_prev=o, d=d,
         beta=jnp.ones((C,), dt), L=jnp.zeros((C,), dt),
         alive=jnp.ones((), bool),
         in_water=G.inside_water(scene.water, o),
@@ -108,8 +109,12 @@ def step(scene: Scene, cfg: RenderConfig, depth, s: PathState, u) -> tuple[PathS
     wo = -s.d
     n = hit.n
 
+    # Distance from the previous vertex itself (not the offset origin), so that the pdfs of
+    # the two strategies MIS compares are evaluated on the same geometry.
+    dist = V.length(p - s.p_prev)
+
     # ---- emission: emitter hit or sky (technique s = 0) ----
-    Le_s, pdf_ls = Lt.emitted_surface(scene, hit.light, wo, n, t)
+    Le_s, pdf_ls = Lt.emitted_surface(scene, hit.light, wo, n, dist)
     Le_e, pdf_le = Lt.emitted_escape(scene, s.d)
     Le = jnp.where(surf, Le_s, jnp.where(esc & ~s.in_water, Le_e, 0.0))
     pdf_l = jnp.where(surf, pdf_ls, pdf_le)
@@ -122,7 +127,7 @@ def step(scene: Scene, cfg: RenderConfig, depth, s: PathState, u) -> tuple[PathS
     albedo = scene.materials.albedo[mat]
     ior = scene.materials.ior[mat]
     cos_hit = jnp.abs(V.dot(wo, n))
-    safe_t = jnp.where(jnp.isfinite(t) & (t > 0), t, 1.0)
+    safe_t = jnp.where(jnp.isfinite(t) & (dist > 0), dist, 1.0)
     pdf_fwd = s.pdf_w * p_dist * jnp.where(scatter, 1.0, cos_hit) / (safe_t * safe_t)
     vertex = Vertex(p, n, scatter, beta, jax.lax.stop_gradient(pdf_fwd), M.is_delta(kind),
                     s.alive & (scatter | surf))
@@ -173,7 +178,7 @@ def step(scene: Scene, cfg: RenderConfig, depth, s: PathState, u) -> tuple[PathS
 
     bad = ~jnp.all(jnp.isfinite(dL))
     L = s.L + jnp.where(bad, 0.0, dL)
-    state = PathState(o, wi, beta, L, alive, in_water, jax.lax.stop_gradient(pdf_w), specular,
+    state = PathState(o, p, wi, beta, L, alive, in_water, jax.lax.stop_gradient(pdf_w), specular,
                       s.nonfinite + bad.astype(jnp.int32))
     return state, vertex
 

@@ -1,0 +1,326 @@
+"""Film output: linear float32 EXR, sRGB PNG preview, JSON sidecar (all written atomically),
+and a throttled one-line progress display.
+
+Every file is first written to a hidden temp file in the destination directory
+(`.NAME.tmpXXXX`) and then moved over the destination with `os.replace`, so a process
+killed at any moment leaves either the previous complete file or the new complete file,
+never a truncated one. A temp file orphaned by a kill starts with a dot and does not end
+in the real extension, so it cannot be mistaken for an output.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import os
+import sys
+import tempfile
+import time as _time
+from collections.abc import Iterator
+
+import numpy as np
+
+__all__ = ["Progress", "read_exr", "write_outputs", "atomic_path", "write_exr", "write_png"]
+
+
+def _read_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
+
+
+def _mkstemp_near(path: str) -> str:
+    d, base = os.path.split(path)
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=f".{base}.tmp")
+    try:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual mode
+    except (OSError, AttributeError):
+        pass
+    os.close(fd)
+    return tmp
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Defer SIGINT/SIGTERM (main thread, POSIX) so a short critical section completes."""
+    import signal
+    import threading
+
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    if (not hasattr(signal, "pthread_sigmask")
+            or threading.current_thread() is not threading.main_thread()):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextlib.contextmanager
+def atomic_paths(paths: list[str]) -> Iterator[list[str]]:
+    """Yield temp paths next to `paths`; on success move each over its destination, on
+    any failure remove them all and leave the destinations untouched. SIGINT/SIGTERM are
+    held back for the duration (a Ctrl-C lands right after the files are complete), so
+    only SIGKILL can interrupt it, and that leaves at most hidden `.NAME.tmp*` files."""
+    paths = [os.path.abspath(os.fspath(p)) for p in paths]
+    tmps: list[str] = []
+    with _signals_held():
+        try:
+            for p in paths:
+                tmps.append(_mkstemp_near(p))
+            yield list(tmps)
+            for t in tmps:
+                _fsync_file(t)
+            for t, p in zip(tmps, paths):
+                os.replace(t, p)
+        except BaseException:
+            for t in tmps:
+                with contextlib.suppress(OSError):
+                    os.unlink(t)
+            raise
+
+
+@contextlib.contextmanager
+def atomic_path(path: str) -> Iterator[str]:
+    """Yield a temp path next to `path`; on success move it over `path`, on any failure
+    (including KeyboardInterrupt) remove it and leave `path` untouched."""
+    with atomic_paths([path]) as (tmp,):
+        yield tmp
+
+
+def _fsync_file(path: str) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _check_image(image) -> np.ndarray:
+    a = np.asarray(image, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[0] < 1 or a.shape[1] < 1 or a.shape[2] < 1:
+        raise ValueError(f"image: expected an array [H, W, C], got shape {np.shape(image)}")
+    return a
+
+
+def _channels(a: np.ndarray) -> dict:
+    C = a.shape[2]
+    if C == 3:
+        return {"RGB": np.ascontiguousarray(a)}
+    if C == 1:
+        return {"Y": np.ascontiguousarray(a[..., 0])}
+    return {f"C{c}": np.ascontiguousarray(a[..., c]) for c in range(C)}
+
+
+def _exr_header(header: dict | None) -> dict:
+    import OpenEXR
+
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if header:
+        hdr.update(header)
+    return hdr
+
+
+def write_exr(path: str, image, header: dict | None = None) -> None:
+    """Write a linear float32 EXR atomically (RGB for 3 channels, Y for 1, C0.. otherwise)."""
+    import OpenEXR
+
+    a = _check_image(image)
+    with atomic_path(path) as tmp:
+        OpenEXR.File(_exr_header(header), _channels(a)).write(tmp)
+
+
+def to_srgb8(image, exposure: float = 0.0) -> np.ndarray:
+    """Linear radiance -> 8-bit sRGB preview (exposure in stops; NaN/Inf shown as 0/1)."""
+    import colour
+
+    a = _check_image(image).astype(np.float64) * 2.0 ** float(exposure)
+    a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=0.0)
+    a = np.clip(a, 0.0, 1.0)
+    enc = np.asarray(colour.cctf_encoding(a, function="sRGB"), dtype=np.float64)
+    out = np.round(np.clip(enc, 0.0, 1.0) * 255.0).astype(np.uint8)
+    C = out.shape[2]
+    if C == 1:
+        out = np.repeat(out, 3, axis=2)
+    elif C == 2:
+        out = np.concatenate([out, np.zeros_like(out[..., :1])], axis=2)
+    elif C > 3:
+        out = out[..., :3]
+    return out
+
+
+def png_bytes(image, exposure: float = 0.0) -> bytes:
+    """The sRGB 8-bit PNG preview of a linear image, encoded in memory."""
+    import matplotlib.image as mpimg
+
+    buf = io.BytesIO()
+    mpimg.imsave(buf, to_srgb8(image, exposure), format="png")
+    return buf.getvalue()
+
+
+def write_png(path: str, image, exposure: float = 0.0) -> None:
+    """Write the sRGB 8-bit preview of a linear image atomically."""
+    data = png_bytes(image, exposure)
+    with atomic_path(path) as tmp:
+        _write_bytes(tmp, data)
+
+
+def _json_text(meta: dict) -> str:
+    return json.dumps(meta, indent=2, default=_json_default) + "\n"
+
+
+def write_json(path: str, meta: dict) -> None:
+    text = _json_text(meta)
+    with atomic_path(path) as tmp:
+        _write_bytes(tmp, text.encode("utf-8"))
+
+
+def _write_bytes(path: str, data: bytes) -> None:
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if hasattr(o, "__array__"):
+        return np.asarray(o).tolist()
+    return str(o)
+
+
+def write_outputs(out_path: str, image, meta: dict, exposure: float = 0.0) -> None:
+    """Write `out_path` (.exr, linear float32), the PNG preview (`.png`, image * 2**exposure,
+    sRGB, 8-bit) and the JSON sidecar (`.json`, `meta`) next to it. The directory must exist.
+
+    Each file is replaced atomically. Everything is encoded and written to temp files
+    first and the three renames then follow each other immediately (with SIGINT/SIGTERM
+    held back), so a killed process leaves a consistent, complete set of files."""
+    import OpenEXR
+
+    out_path = os.fspath(out_path)
+    stem, ext = os.path.splitext(out_path)
+    if ext.lower() != ".exr":
+        raise ValueError(f"out: must end in .exr, got {out_path!r}")
+    a = _check_image(image)
+    png = png_bytes(a, exposure)
+    text = _json_text(meta).encode("utf-8")
+    with atomic_paths([out_path, stem + ".png", stem + ".json"]) as (t_exr, t_png, t_json):
+        OpenEXR.File(_exr_header(None), _channels(a)).write(t_exr)
+        _write_bytes(t_png, png)
+        _write_bytes(t_json, text)
+
+
+def read_exr(path: str) -> np.ndarray:
+    """Read an EXR written by `write_exr` (or any RGB EXR) as float32 [H, W, 3]."""
+    import OpenEXR
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: file not found")
+    f = OpenEXR.File(path, separate_channels=True)
+    ch = f.channels()
+    if all(k in ch for k in "RGB"):
+        planes = [ch[k].pixels for k in "RGB"]
+    elif "Y" in ch:
+        planes = [ch["Y"].pixels] * 3
+    else:
+        raise ValueError(f"{path}: no R, G, B or Y channels (found: {', '.join(sorted(ch))})")
+    return np.stack([np.asarray(p, dtype=np.float32) for p in planes], axis=-1)
+
+
+class Progress:
+    """One carriage-return-updated status line on stderr: passes done (of total), passes/s,
+    ETA (from `total` passes or the `time_budget` in seconds, whichever ends first).
+    Redrawn at most ~4 times a second; silent when `enabled` is False."""
+
+    min_interval = 0.25
+
+    def __init__(self, total: int | None, time_budget: float | None, enabled: bool = True,
+                 stream=None):
+        self.total = total
+        self.time_budget = time_budget
+        self.enabled = enabled
+        self.stream = stream
+        self._last_draw = -math.inf
+        self._pending: tuple[int, float] | None = None
+        self._width = 0
+        self._drawn = False
+
+    def _out(self):
+        return self.stream if self.stream is not None else sys.stderr
+
+    def _line(self, i: int, elapsed: float) -> str:
+        rate = i / elapsed if elapsed > 0 else 0.0
+        done = f"{i}/{self.total}" if self.total is not None else f"{i}"
+        etas = []
+        if self.total is not None and rate > 0:
+            etas.append(max(self.total - i, 0) / rate)
+        if self.time_budget is not None:
+            etas.append(max(self.time_budget - elapsed, 0.0))
+        eta = _fmt_time(min(etas)) if etas else "?"
+        return (f"render: {done} passes  {rate:.2f} passes/s  "
+                f"elapsed {_fmt_time(elapsed)}  ETA {eta}")
+
+    def _draw(self, i: int, elapsed: float) -> None:
+        line = self._line(i, elapsed)
+        pad = max(self._width - len(line), 0)
+        self._width = len(line)
+        s = self._out()
+        try:
+            s.write("\r" + line + " " * pad)
+            s.flush()
+        except (OSError, ValueError):
+            self.enabled = False
+            return
+        self._drawn = True
+
+    def update(self, i: int, elapsed: float) -> None:
+        if not self.enabled:
+            return
+        now = _time.monotonic()
+        final = self.total is not None and i >= self.total
+        if final or now - self._last_draw >= self.min_interval:
+            self._draw(i, elapsed)
+            self._last_draw = now
+            self._pending = None
+        else:
+            self._pending = (i, elapsed)
+
+    def close(self) -> None:
+        if not self.enabled:
+            return
+        if self._pending is not None:
+            self._draw(*self._pending)
+            self._pending = None
+        if self._drawn:
+            try:
+                self._out().write("\n")
+                self._out().flush()
+            except (OSError, ValueError):
+                pass
+        self._drawn = False
+
+
+def _fmt_time(s: float) -> str:
+    if not math.isfinite(s):
+        return "?"
+    s = int(round(s))
+    h, r = divmod(s, 3600)
+    m, sec = divmod(r, 60)
+    return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"

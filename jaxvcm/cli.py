@@ -1,0 +1,293 @@
+"""Command line: `jaxvcm render | info | export | bench`.
+
+Errors in the scene file or the arguments are reported as ONE line on stderr,
+`jaxvcm: error: <message>`, with exit status 2 and no traceback. An interrupted render
+(Ctrl-C) exits with 130; its last snapshot (see --snapshot-every) is already on disk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+PROG = "jaxvcm"
+
+
+class _UsageError(Exception):
+    """An argparse error, reported as one line."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line instead of usage + message, same exit status
+        raise _UsageError(message)
+
+
+def _err(msg) -> int:
+    msg = " ".join(str(msg).split()) or "unknown error"
+    print(f"{PROG}: error: {msg}", file=sys.stderr, flush=True)
+    return 2
+
+
+def _finite_float(positive=False):
+    def conv(s):
+        try:
+            v = float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"must be finite, got {s!r}")
+        if positive and not v > 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {s!r}")
+        return v
+    return conv
+
+
+def _pos_int(lo=1):
+    def conv(s):
+        try:
+            v = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {v}")
+        return v
+    return conv
+
+
+def _parser() -> argparse.ArgumentParser:
+    from ._config import ALGORITHMS
+
+    p = _Parser(prog=PROG, description="Differentiable JAX renderer for analytic water scenes.")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    r = sub.add_parser("render", help="render a scene progressively to EXR + PNG + JSON")
+    r.add_argument("scene", metavar="SCENE", help="scene file (.toml)")
+    r.add_argument("--algorithm", default="pt", choices=ALGORITHMS)
+    g = r.add_mutually_exclusive_group()
+    g.add_argument("--passes", type=_pos_int(), metavar="N",
+                   help="number of passes (1 sample per pixel each)")
+    g.add_argument("--time", type=_finite_float(positive=True), metavar="SEC",
+                   help="render for this many seconds (default: 60 if --passes is not given)")
+    r.add_argument("--seed", type=_pos_int(lo=0), default=0)
+    r.add_argument("--width", type=_pos_int(), metavar="W")
+    r.add_argument("--height", type=_pos_int(), metavar="H")
+    r.add_argument("--out", metavar="FILE.exr",
+                   help="output EXR (PNG and JSON go next to it); default out/<scene>.exr")
+    r.add_argument("--snapshot-every", type=_finite_float(positive=True),
+                   metavar="SEC", help="write atomic snapshots every SEC seconds")
+    r.add_argument("--exposure", type=_finite_float(), default=0.0, metavar="EV",
+                   help="exposure of the PNG preview, in stops")
+    r.add_argument("--max-depth", type=_pos_int(), metavar="D",
+                   help="maximum path length in segments")
+    r.add_argument("--quiet", action="store_true", help="no progress line")
+
+    i = sub.add_parser("info", help="describe a scene")
+    i.add_argument("scene", metavar="SCENE")
+
+    e = sub.add_parser("export", help="tessellate a scene to a mesh file (.glb, .ply, .obj)")
+    e.add_argument("scene", metavar="SCENE")
+    e.add_argument("out", metavar="OUT", help="OUT.glb, OUT.ply or OUT.obj")
+
+    sub.add_parser("bench", help="benchmarks (arguments are passed to jaxvcm._bench)",
+                   add_help=False)
+    return p
+
+
+def _cache_dir() -> str:
+    d = os.environ.get("JAXVCM_CACHE_DIR")
+    if d:
+        return d
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jaxvcm", "jax")
+
+
+def _enable_compilation_cache() -> None:
+    """Persistent XLA compilation cache, so repeated CLI renders do not recompile.
+    Leaves an already configured cache (e.g. by a test harness) alone."""
+    import jax
+
+    try:
+        if jax.config.jax_compilation_cache_dir:
+            return
+        d = _cache_dir()
+        os.makedirs(d, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", d)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    except Exception:  # a cache is an optimisation, never a reason to fail
+        pass
+
+
+def _default_out(scene_path: str) -> str:
+    stem = os.path.splitext(os.path.basename(scene_path))[0] or "render"
+    return os.path.join("out", stem + ".exr")
+
+
+def _cmd_render(a) -> int:
+    import jaxvcm
+    from ._config import RenderConfig
+
+    out = a.out or _default_out(a.scene)
+    if os.path.splitext(out)[1].lower() != ".exr":
+        raise ValueError(f"--out: must end in .exr, got {out!r}")
+    passes, tlimit = a.passes, a.time
+    if passes is None and tlimit is None:
+        tlimit = 60.0
+    cfg = {"algorithm": a.algorithm}
+    if a.max_depth is not None:
+        cfg["max_depth"] = a.max_depth
+    config = RenderConfig(**cfg)
+    scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
+    d = os.path.dirname(os.path.abspath(out))
+    os.makedirs(d, exist_ok=True)
+    _enable_compilation_cache()
+    try:
+        jaxvcm.render(scene, algorithm=a.algorithm, passes=passes, time=tlimit, seed=a.seed,
+                      snapshot_every=a.snapshot_every, out=out, exposure=a.exposure,
+                      scene_path=a.scene, config=config, progress=not a.quiet)
+    except KeyboardInterrupt:
+        snap = " (last snapshot: " + out + ")" if a.snapshot_every and os.path.exists(out) else ""
+        print(f"{PROG}: interrupted{snap}", file=sys.stderr, flush=True)
+        return 130
+    print(out)
+    return 0
+
+
+def _fmt_vec(v) -> str:
+    import numpy as np
+
+    return "[" + ", ".join(f"{x:.4g}" for x in np.asarray(v, dtype=np.float64).ravel()) + "]"
+
+
+def describe(scene) -> str:
+    """A human-readable summary of a loaded scene."""
+    import numpy as np
+
+    from ._scene import LIGHT_NAMES, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES, PHASE_NAMES
+
+    cam = scene.camera
+    fov = math.degrees(2 * math.atan(float(cam.tan_half_fov)))
+    lines = [
+        f"name:      {scene.name}",
+        f"image:     {cam.width} x {cam.height}, {scene.channels} channels",
+        f"camera:    position {_fmt_vec(cam.origin)}, forward {_fmt_vec(cam.forward)}, "
+        f"fov {fov:.4g} deg (vertical)",
+    ]
+    rl = np.asarray(scene.rects.light)
+    sl = np.asarray(scene.spheres.light)
+    lines.append(f"rects:     {scene.rects.count} ({int(np.sum(rl >= 0))} emissive)")
+    lines.append(f"spheres:   {scene.spheres.count} ({int(np.sum(sl >= 0))} emissive)")
+    kinds = [MAT_NAMES.get(k, str(k)) for k in scene.materials.kind]
+    lines.append(f"materials: {len(kinds)} ({', '.join(kinds)})")
+    w = scene.water
+    if w.enabled:
+        waves = np.stack([np.asarray(x, np.float64) for x in (w.amp, w.kx, w.kz, w.phase0)], 1)
+        phase = PHASE_NAMES.get(w.phase_kind, str(w.phase_kind))
+        if phase == "hg":
+            phase += f" (g = {float(w.g):.4g})"
+        elif phase == "water":
+            phase += f" (b = {float(w.b):.4g})"
+        lines += [
+            f"water:     level {float(w.level):.4g}, {waves.shape[0]} waves, "
+            f"ior {float(w.ior):.4g}, phase {phase}",
+            f"           sigma_a {_fmt_vec(w.sigma_a)} 1/m, sigma_s {_fmt_vec(w.sigma_s)} 1/m",
+            f"           footprint x [{float(w.footprint[0]):.4g}, {float(w.footprint[1]):.4g}]"
+            f", z [{float(w.footprint[2]):.4g}, {float(w.footprint[3]):.4g}], "
+            f"floor {float(w.floor):.4g}",
+        ]
+        for j, (A, kx, kz, ph) in enumerate(waves):
+            lines.append(f"           wave {j}: A {A:.4g}, k ({kx:.4g}, {kz:.4g}), "
+                         f"phase {ph:.4g}")
+    else:
+        lines.append("water:     none")
+    L = scene.lights
+    lines.append(f"lights:    {L.count}")
+    rad = np.asarray(L.radiance, np.float64)
+    for j, (k, sh) in enumerate(zip(L.kind, L.shape)):
+        name = LIGHT_NAMES.get(k, str(k))
+        what = "irradiance" if k == LIGHT_SUN else "radiance"
+        extra = ""
+        if k == LIGHT_RECT:
+            p0 = np.asarray(scene.rects.p0[sh], np.float64)
+            e1 = np.asarray(scene.rects.e1[sh], np.float64)
+            e2 = np.asarray(scene.rects.e2[sh], np.float64)
+            n = np.cross(e1, e2)
+            extra = (f", center {_fmt_vec(p0 + 0.5 * (e1 + e2))}, area "
+                     f"{np.linalg.norm(n):.4g} m^2, normal {_fmt_vec(n / np.linalg.norm(n))}")
+        elif k == LIGHT_SPHERE:
+            extra = (f", center {_fmt_vec(scene.spheres.center[sh])}, radius "
+                     f"{float(scene.spheres.radius[sh]):.4g}")
+        elif k == LIGHT_SUN:
+            extra = f", direction {_fmt_vec(L.direction[j])}"
+        lines.append(f"  light {j}: {name}, {what} {_fmt_vec(rad[j])}{extra}")
+    b = np.asarray(scene.bounds, np.float64)
+    lines.append(f"bounds:    {_fmt_vec(b[0])} .. {_fmt_vec(b[1])}")
+    return "\n".join(lines)
+
+
+def _cmd_info(a) -> int:
+    import jaxvcm
+
+    print(describe(jaxvcm.load_scene(a.scene)))
+    return 0
+
+
+def _cmd_export(a) -> int:
+    import jaxvcm
+    from ._export import FORMATS, export_scene
+
+    ext = os.path.splitext(a.out)[1].lower()
+    if ext not in FORMATS:  # fail before loading the scene
+        raise ValueError(f"export: unknown format {ext or '(none)'!r} of {a.out!r}; "
+                         f"use one of {', '.join(FORMATS)}")
+    scene = jaxvcm.load_scene(a.scene)
+    d = os.path.dirname(os.path.abspath(a.out))
+    if not os.path.isdir(d):
+        raise FileNotFoundError(f"{a.out}: directory {d} does not exist")
+    export_scene(scene, a.out)
+    print(a.out)
+    return 0
+
+
+def _cmd_bench(rest: list[str]) -> int:
+    import importlib
+
+    try:
+        _bench = importlib.import_module("jaxvcm._bench")
+    except ModuleNotFoundError as e:
+        if e.name == "jaxvcm._bench":
+            return _err("bench: the benchmark module jaxvcm._bench is not available")
+        raise
+    _enable_compilation_cache()
+    rc = _bench.main(rest)
+    return int(rc) if rc is not None else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] == "bench":
+            return _cmd_bench(argv[1:])
+        a = _parser().parse_args(argv)
+        if a.command == "render":
+            return _cmd_render(a)
+        if a.command == "info":
+            return _cmd_info(a)
+        if a.command == "export":
+            return _cmd_export(a)
+        return _err(f"unknown command {a.command!r}")  # pragma: no cover
+    except _UsageError as e:
+        return _err(e)
+    except (ValueError, OSError) as e:  # SceneError is a ValueError
+        return _err(e)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr, flush=True)
+        return 130
+    except SystemExit as e:  # --help
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else _err(e.code))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
