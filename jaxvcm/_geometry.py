@@ -118,20 +118,23 @@ def _slab_interval(lo: Vec3, hi: Vec3, o: Vec3, d: Vec3, tmin, tmax):
     return t0, t1
 
 
-def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, bisect: int = 10,
-                    newton: int = 2) -> Array:
+def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, refine: int = 4,
+                    any_hit: bool = False) -> Array:
     """First crossing of the heightfield along the ray, to float32 precision.
 
-    1. Clip the ray to the box footprint x [level - sum|A|, level + sum|A|] that contains the
-       surface (no crossing can lie outside it).
+    1. Clip the ray to the box footprint x [level - sum|A|, level + sum|A|] (padded by
+       1 mm) that contains the surface: no crossing can lie outside it.
     2. March `steps` uniform segments over that interval and take the first segment whose
        end-point values of f(t) = o_y + t d_y - h(x(t), z(t)) differ in sign (the bracket).
-    3. Refine: `bisect` bisection steps, then `newton` Newton steps clamped to the bracket.
+       With `any_hit` (shadow rays) the answer is already known here: a sign change inside
+       (tmin, tmax) is a crossing, so no refinement is done.
+    3. Refine: `refine` Illinois (modified regula falsi) steps, which keep the bracket and
+       converge superlinearly, then one Newton step clamped to the bracket.
 
-    A crossing pair closer together than one march segment (the ray grazing a crest
-    by less than a segment) can be missed; with 16 segments the segment is at most
-    ~18 cm against a shortest wavelength of ~29 cm in the shipped pools, so this only
-    happens for near-tangent grazing rays (tests bound how often).
+    A crossing pair closer together than one march segment (the ray grazing a crest by
+    less than a segment) can be missed; with 16 segments the segment is at most ~18 cm
+    against a shortest wavelength of ~29 cm in the shipped pools, so this only happens
+    for near-tangent grazing rays (tests bound how often).
     """
     ylo, yhi = water_slab(w)
     fp = w.footprint
@@ -150,25 +153,30 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, bis
     sgn0 = fs[0] >= 0
     change = (fs[1:] >= 0) != sgn0
     found = jnp.any(change) & ~empty
+    if any_hit:
+        return jnp.where(found, t0, INF)
     k = jnp.argmax(change)
     a, b = ts[k], ts[k + 1]
-    fa = fs[k]
-
-    def bis(_, ab):
-        a, b, fa = ab
-        m = 0.5 * (a + b)
+    fa, fb = fs[k], fs[k + 1]
+    side = jnp.zeros((), jnp.int32)  # which end was kept last time (Illinois halving)
+    for _ in range(refine):
+        denom = fb - fa
+        m = jnp.where(denom != 0, (a * fb - b * fa) / jnp.where(denom != 0, denom, 1.0),
+                      0.5 * (a + b))
+        m = jnp.clip(m, jnp.minimum(a, b), jnp.maximum(a, b))
         fm = f(m)
-        left = (fm >= 0) != (fa >= 0)  # root in [a, m]
-        return jnp.where(left, a, m), jnp.where(left, m, b), jnp.where(left, fa, fm)
-
-    a, b, fa = jax.lax.fori_loop(0, bisect, bis, (a, b, fa), unroll=True)
-    t = 0.5 * (a + b)
-    for _ in range(newton):
-        h, hx, hz = water_height(w, o.x + t * d.x, o.z + t * d.z)
-        ft = o.y + t * d.y - h
-        dft = d.y - (hx * d.x + hz * d.z)
-        step = ft / jnp.where(dft == 0, 1e-30, dft)
-        t = jnp.clip(t - step, a, b)
+        left = (fm >= 0) != (fa >= 0)  # root in [a, m]: b <- m
+        # Illinois: if the same end survives twice, halve its function value
+        fa = jnp.where(left & (side == 1), 0.5 * fa, fa)
+        fb = jnp.where(~left & (side == -1), 0.5 * fb, fb)
+        b, fb = jnp.where(left, m, b), jnp.where(left, fm, fb)
+        a, fa = jnp.where(left, a, m), jnp.where(left, fa, fm)
+        side = jnp.where(left, 1, -1)
+    t = jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b)
+    h, hx, hz = water_height(w, o.x + t * d.x, o.z + t * d.z)
+    ft = o.y + t * d.y - h
+    dft = d.y - (hx * d.x + hz * d.z)
+    t = jnp.clip(t - ft / jnp.where(dft == 0, 1e-30, dft), a, b)
     ok = found & (t > tmin) & (t < tmax)
     return jnp.where(ok, t, INF)
 
@@ -183,7 +191,8 @@ def inside_water(w: Water, p: Vec3) -> Array:
 
 
 # ---------------------------------------------------------------- scene
-def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16) -> Hit:
+def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16,
+                    any_hit: bool = False) -> Hit:
     """Closest hit over every shape kind (static dispatch); a miss has t = inf, shape = -1."""
     dt = o.x.dtype
     t = jnp.asarray(INF, dt)
@@ -204,7 +213,7 @@ def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: i
         shape = jnp.where(closer, SHAPE_SPHERE, shape)
         index = jnp.where(closer, isph.astype(jnp.int32), index)
     if scene.water.enabled:
-        tw = intersect_water(scene.water, o, d, tmin, tmax, steps=steps)
+        tw = intersect_water(scene.water, o, d, tmin, tmax, steps=steps, any_hit=any_hit)
         closer = tw < t
         t = jnp.where(closer, tw, t)
         shape = jnp.where(closer, SHAPE_WATER, shape)
@@ -240,4 +249,4 @@ def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: i
 def unoccluded(scene: Scene, o: Vec3, d: Vec3, tmax, steps: int = 16) -> Array:
     """True if nothing is hit on (0, tmax): the shadow-ray test. Any surface blocks,
     the water surface included (NEE through a delta interface is impossible)."""
-    return ~jnp.isfinite(intersect_scene(scene, o, d, 0.0, tmax, steps).t)
+    return ~jnp.isfinite(intersect_scene(scene, o, d, 0.0, tmax, steps, any_hit=True).t)

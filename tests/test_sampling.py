@@ -196,8 +196,16 @@ LIGHT_SCENES = {
 }
 
 
-def light_scene(lights, dt):
-    return jaxvcm.scene_from_dict({"camera": CAMERA, "lights": lights}, dtype=dt)
+# a non-emissive floor gives the scene finite bounds (the sun and sky selection weights
+# use the area of the bounding disk); it plays no part in light sampling
+FLOOR = {"type": "rect", "center": [0.0, -0.5, 0.0], "normal": [0.0, 1.0, 0.0], "size": [2.0, 2.0],
+         "material": "grey"}
+
+
+def light_scene(lights, dt, shapes=(FLOOR,)):
+    doc = {"camera": CAMERA, "materials": {"grey": {"type": "diffuse"}}, "shapes": list(shapes),
+           "lights": lights}
+    return jaxvcm.scene_from_dict(doc, dtype=dt)
 
 
 def draw_light_samples(scene, seed, n=N):
@@ -380,6 +388,19 @@ def test_sun_light():
     # the non-delta samples are the sky's, with its pdf times its selection probability
     y = wi[~delta, 1]
     np.testing.assert_allclose(np.asarray(ls.pdf_w, np.float64)[~delta], y / np.pi * sel[1], rtol=2e-5)
+
+
+@pytest.mark.parametrize("lights", [[SKY_LIGHT], [SUN_LIGHT], [SUN_LIGHT, SKY_LIGHT]],
+                         ids=["sky", "sun", "sun+sky"])
+def test_light_selection_without_geometry(lights):
+    """A scene whose only lights are sun / sky and that has no geometry loads fine, so its
+    light selection must still be a probability distribution (not 0 / 0)."""
+    scene = light_scene(lights, F32, shapes=())
+    sel = np.asarray(Lt.selection_pdf(scene), np.float64)
+    assert np.all(np.isfinite(sel)), f"selection pdf {sel} (power weights {scene.lights.power_weight})"
+    np.testing.assert_allclose(sel.sum(), 1.0, rtol=1e-6)
+    ls = draw_light_samples(scene, seed=1, n=64)
+    assert np.all(np.isfinite(np.asarray(ls.pdf_w)) & (np.asarray(ls.pdf_w) > 0))
 
 
 # ---------------------------------------------------------------------------- free flight
