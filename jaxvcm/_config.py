@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-ALGORITHMS = ("pt",)  # later issues add lt, bdpt, ppm, bpm, vcm as flags of the same core
+ALGORITHMS = ("pt", "lt", "bdpt")  # later: ppm, bpm, vcm as flags of the same core
 MIS_HEURISTICS = ("balance", "power")
 
 

@@ -38,11 +38,18 @@ def intersect_rects(r: Rects, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, Arra
     n = V.cross(e1, e2)
     denom = V.dot(d, n)
     safe = jnp.where(denom == 0, 1.0, denom)
-    t = V.dot(p0 - o, n) / safe
+    num = V.dot(p0 - o, n)
+    t = num / safe
     q = o + d * t - p0
-    u = V.dot(q, e1) / V.dot(e1, e1)
-    v = V.dot(q, e2) / V.dot(e2, e2)
-    ok = (denom != 0) & (t > tmin) & (t < tmax) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
+    # (u, v) in the dual basis of (e1, e2): right for parallelograms, not only rectangles
+    nn = V.dot(n, n)
+    u = V.dot(V.cross(q, e2), n) / nn
+    v = V.dot(V.cross(e1, q), n) / nn
+    # o on the plane to within the rounding of num: the only "hit" would be o itself
+    eps = jnp.finfo(o.x.dtype).eps
+    on_plane = jnp.abs(num) <= 8 * eps * V.length(n) * (V.length(p0) + V.length(o)
+                                                         + V.length(e1) + V.length(e2))
+    ok = ~on_plane & (denom != 0) & (t > tmin) & (t < tmax) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
     t = jnp.where(ok, t, INF)
     return t, jnp.argmin(t)
 
@@ -71,6 +78,11 @@ def intersect_spheres(s: Spheres, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, 
     t_near = jnp.minimum(t0, t1)
     t_far = jnp.maximum(t0, t1)
     t = jnp.where(t_near > tmin, t_near, t_far)
+    # o on the sphere to within rounding: its own root cc / q ~ 0 is a self-hit; the other
+    # root q (= -2 b) is the far side when entering, negative (a miss) when leaving
+    eps = jnp.finfo(o.x.dtype).eps
+    on = jnp.abs(loc - s.radius) <= 8 * eps * (V.length(o) + V.length(c) + s.radius)
+    t = jnp.where(on, q, t)
     ok = (disc >= 0) & (t > tmin) & (t < tmax) & (q != 0)
     t = jnp.where(ok, t, INF)
     return t, jnp.argmin(t)
@@ -118,7 +130,7 @@ def _slab_interval(lo: Vec3, hi: Vec3, o: Vec3, d: Vec3, tmin, tmax):
     return t0, t1
 
 
-def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, refine: int = 4,
+def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, refine: int = 6,
                     any_hit: bool = False) -> Array:
     """First crossing of the heightfield along the ray, to float32 precision.
 
@@ -150,7 +162,14 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
 
     ts = t0 + (t1c - t0) * (jnp.arange(steps + 1, dtype=o.x.dtype) / steps)
     fs = f(ts)
-    sgn0 = fs[0] >= 0
+    # o on the surface (f(t0) within its rounding): use the sign the ray moves towards
+    eps = jnp.finfo(o.x.dtype).eps
+    x0, z0 = o.x + t0 * d.x, o.z + t0 * d.z
+    _, hx0, hz0 = water_height(w, x0, z0)
+    df0 = d.y - (hx0 * d.x + hz0 * d.z)
+    ferr = 8 * eps * (jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level) + jnp.sum(
+        jnp.abs(w.amp) * (1 + jnp.abs(w.kx * x0) + jnp.abs(w.kz * z0) + jnp.abs(w.phase0))))
+    sgn0 = jnp.where(jnp.abs(fs[0]) <= ferr, df0 >= 0, fs[0] >= 0)
     change = (fs[1:] >= 0) != sgn0
     found = jnp.any(change) & ~empty
     if any_hit:

@@ -28,11 +28,15 @@ class LightSample(NamedTuple):
     pdf_w: Array  # solid-angle pdf including selection probability; 1 for the sun
     delta: Array  # sun: a delta distribution (MIS weight 1, no BSDF-sampling counterpart)
     valid: Array  # False: back side of a one-sided light, or sky below the horizon
+    light: Array  # index of the chosen light
+    n: Vec3  # normal at the sampled light point (area lights)
 
 
 def selection_pdf(scene: Scene) -> Array:
     w = jax.lax.stop_gradient(scene.lights.power_weight)
-    return w / jnp.sum(w)
+    total = jnp.sum(w)
+    # sun / sky weights use the bounding disk, zero in a scene without geometry: uniform then
+    return jnp.where(total > 0, w / jnp.where(total > 0, total, 1.0), 1.0 / w.shape[0])
 
 
 def rect_area(scene: Scene, i):
@@ -49,10 +53,9 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
     psel = sel[li]
     dt = p.x.dtype
     C = lights.radiance.shape[-1]
-    out = LightSample(
-        Vec3(jnp.zeros((), dt), jnp.ones((), dt), jnp.zeros((), dt)),
-        jnp.asarray(jnp.inf, dt), jnp.zeros((C,), dt), jnp.ones((), dt),
-        jnp.zeros((), bool), jnp.zeros((), bool))
+    up = Vec3(jnp.zeros((), dt), jnp.ones((), dt), jnp.zeros((), dt))
+    out = LightSample(up, jnp.asarray(jnp.inf, dt), jnp.zeros((C,), dt), jnp.ones((), dt),
+                      jnp.zeros((), bool), jnp.zeros((), bool), li, up)
     # Static unrolled loop over the (few) lights: compute each, keep the selected one.
     for k, kind in enumerate(lights.kind):
         Le = lights.radiance[k]
@@ -72,7 +75,7 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
             cos_l = -V.dot(wi, nl)
             valid = (cos_l > 0) & (d2 > 0)
             pdf = d2 / jnp.maximum(cos_l * area, 1e-30)
-            s = LightSample(wi, dist, Le, pdf, jnp.zeros((), bool), valid)
+            s = LightSample(wi, dist, Le, pdf, jnp.zeros((), bool), valid, li, nl)
         elif kind == LIGHT_SPHERE:
             r = lights.shape[k]
             c = V.from_array(scene.spheres.center[r])
@@ -86,16 +89,17 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
             cos_l = jnp.abs(V.dot(wi, dirn))  # two-sided emitter
             valid = (cos_l > 0) & (d2 > 0)
             pdf = d2 / jnp.maximum(cos_l * 4.0 * jnp.pi * rad * rad, 1e-30)
-            s = LightSample(wi, dist, Le, pdf, jnp.zeros((), bool), valid)
+            s = LightSample(wi, dist, Le, pdf, jnp.zeros((), bool), valid, li, dirn)
         elif kind == LIGHT_SUN:
             dl = V.from_array(lights.direction[k])
             s = LightSample(-dl, jnp.asarray(jnp.inf, dt), Le, jnp.ones((), dt),
-                            jnp.ones((), bool), jnp.ones((), bool))
+                            jnp.ones((), bool), jnp.ones((), bool), li, dl)
         elif kind == LIGHT_SKY:
             loc = S.cosine_hemisphere(u1, u2)
             wi = Vec3(loc.x, loc.z, loc.y)  # z-up local -> y-up world
             pdf = S.cosine_hemisphere_pdf(wi.y)
-            s = LightSample(wi, jnp.asarray(jnp.inf, dt), Le, pdf, jnp.zeros((), bool), wi.y > 0)
+            s = LightSample(wi, jnp.asarray(jnp.inf, dt), Le, pdf, jnp.zeros((), bool), wi.y > 0,
+                            li, -wi)
         else:  # pragma: no cover
             raise ValueError(kind)
         pick = li == k
@@ -150,3 +154,146 @@ def emitted_escape(scene: Scene, d: Vec3) -> tuple[Array, Array]:
             Le = Le + jnp.where(up, lights.radiance[k], 0.0)
             pdf = pdf + jnp.where(up, S.cosine_hemisphere_pdf(d.y) * sel[k], 0.0)
     return Le, jax.lax.stop_gradient(pdf)
+
+
+# ---------------------------------------------------------------- emission (light subpaths)
+class Emission(NamedTuple):
+    """Start of a light subpath: the light vertex y_0 and the first ray.
+
+    Area lights: y_0 is a point on the light (area pdf p_sel / A), the direction is
+    cosine-distributed about the emitting normal (pdf cos / pi; spheres emit on both sides,
+    cos / (2 pi)). Sun and sky: y_0 is a direction (the sun's is fixed, the sky's is
+    cosine-distributed about +y); the ray starts on a disk of the scene's bounding radius
+    perpendicular to it, outside the bounding sphere (perpendicular-area pdf 1 / (pi R^2)).
+    """
+
+    p: Vec3  # y_0 on an area light (the disk point for sun / sky)
+    n: Vec3  # emitting normal of y_0 (area lights)
+    o: Vec3  # origin of the first ray (offset off the light)
+    d: Vec3  # direction light travels on the first segment
+    beta0: Array  # [C] 1 / (p_sel p_A): throughput of y_0 before emission (light tracing, s = 1)
+    beta1: Array  # [C] throughput carried by the first ray
+    pdf_pos: Array  # light-side pdf of y_0 (area measure, or solid angle for sky, p_sel for sun)
+    pdf_dir: Array  # pdf of the first segment: solid angle (area lights) or 1/(pi R^2) (sun, sky)
+    light: Array  # light index
+    infinite: Array  # y_0 is at infinity (sun, sky)
+    delta: Array  # delta light (sun)
+
+
+def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
+    """Pdf of the emission direction w (leaving y_0) for light `light` with normal n: solid
+    angle for area lights; for sun and sky the perpendicular-area pdf 1/(pi R^2)."""
+    from ._scene import bounding_sphere
+
+    lights = scene.lights
+    _, rb = bounding_sphere(scene)
+    dt = n.x.dtype
+    pdf = jnp.zeros((), dt)
+    cos = V.dot(n, w)
+    for k, kind in enumerate(lights.kind):
+        if kind == LIGHT_RECT:
+            pk = jnp.maximum(cos, 0.0) * S.INV_PI
+        elif kind == LIGHT_SPHERE:
+            pk = jnp.abs(cos) * (0.5 * S.INV_PI)
+        else:
+            pk = jnp.ones((), dt) / (jnp.pi * rb * rb)
+        pdf = jnp.where(light == k, pk, pdf)
+    return jax.lax.stop_gradient(pdf)
+
+
+def light_point_pdf(scene: Scene, light, w_inf: Vec3):
+    """Light-side pdf of y_0 (selection included): p_sel / area for area lights; for the
+    sky p_sel times the direction pdf of w_inf (pointing to the sky); p_sel for the sun."""
+    lights = scene.lights
+    sel = selection_pdf(scene)
+    dt = w_inf.x.dtype
+    pdf = jnp.zeros((), dt)
+    for k, kind in enumerate(lights.kind):
+        if kind == LIGHT_RECT:
+            pk = 1.0 / rect_area(scene, lights.shape[k])
+        elif kind == LIGHT_SPHERE:
+            r = scene.spheres.radius[lights.shape[k]]
+            pk = 1.0 / (4.0 * jnp.pi * r * r)
+        elif kind == LIGHT_SKY:
+            pk = S.cosine_hemisphere_pdf(w_inf.y)
+        else:
+            pk = jnp.ones((), dt)
+        pdf = jnp.where(light == k, pk * sel[k], pdf)
+    return jax.lax.stop_gradient(pdf)
+
+
+def sample_emission(scene: Scene, u) -> Emission:
+    """Sample y_0 and the first direction of a light subpath. u: 5 uniforms."""
+    from ._scene import bounding_sphere
+
+    lights = scene.lights
+    sel = selection_pdf(scene)
+    li, _ = S.sample_discrete(sel, u[0])
+    psel = sel[li]
+    dt = u.dtype
+    C = lights.radiance.shape[-1]
+    cb, rb = bounding_sphere(scene)
+    cb = V.from_array(cb)
+    z = jnp.zeros((), dt)
+    zero3 = Vec3(z, z, z)
+    out = Emission(zero3, zero3, zero3, Vec3(z, -jnp.ones((), dt), z), jnp.zeros((C,), dt),
+                   jnp.zeros((C,), dt), jnp.ones((), dt), jnp.ones((), dt),
+                   jnp.asarray(0, jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
+    dx, dy = S.concentric_disk(u[3], u[4])
+    for k, kind in enumerate(lights.kind):
+        Le = lights.radiance[k]
+        if kind in (LIGHT_RECT, LIGHT_SPHERE):
+            if kind == LIGHT_RECT:
+                r = lights.shape[k]
+                p0 = V.from_array(scene.rects.p0[r])
+                e1 = V.from_array(scene.rects.e1[r])
+                e2 = V.from_array(scene.rects.e2[r])
+                nl = V.cross(e1, e2)
+                area = V.length(nl)
+                n = nl / area
+                p = p0 + e1 * u[1] + e2 * u[2]
+                loc = S.cosine_hemisphere(u[3], u[4])
+                d = V.to_world(loc, n)
+                pdf_dir = S.cosine_hemisphere_pdf(loc.z)
+            else:
+                r = lights.shape[k]
+                c = V.from_array(scene.spheres.center[r])
+                rad = scene.spheres.radius[r]
+                area = 4.0 * jnp.pi * rad * rad
+                # u[1] picks the side (both sides emit), reused for the point
+                out_side = u[1] < 0.5
+                u1 = jnp.where(out_side, 2.0 * u[1], 2.0 * u[1] - 1.0)
+                n = S.uniform_sphere(u1, u[2])
+                p = c + n * rad
+                loc = S.cosine_hemisphere(u[3], u[4])
+                nn = V.where(out_side, n, -n)
+                d = V.to_world(loc, nn)
+                pdf_dir = 0.5 * S.cosine_hemisphere_pdf(loc.z)
+            cos = jnp.abs(V.dot(d, n))
+            pdf_pos = psel / area
+            scale = 1e-4 * (1.0 + jnp.maximum(jnp.maximum(jnp.abs(p.x), jnp.abs(p.y)), jnp.abs(p.z)))
+            o = p + n * jnp.where(V.dot(d, n) >= 0, scale, -scale)
+            e = Emission(p, n, o, d, jnp.ones((C,), dt) / pdf_pos, Le * cos / (pdf_pos * pdf_dir), pdf_pos,
+                         pdf_dir, jnp.asarray(k, jnp.int32), jnp.zeros((), bool),
+                         jnp.zeros((), bool))
+        else:
+            if kind == LIGHT_SUN:
+                d = V.from_array(lights.direction[k])
+                pdf_pos = psel
+                delta = jnp.ones((), bool)
+            else:
+                loc = S.cosine_hemisphere(u[1], u[2])
+                w_sky = Vec3(loc.x, loc.z, loc.y)
+                d = -w_sky
+                pdf_pos = psel * S.cosine_hemisphere_pdf(w_sky.y)
+                delta = jnp.zeros((), bool)
+            t1, t2 = V.onb(d)
+            o = cb - d * (rb * 1.01) + (t1 * dx + t2 * dy) * rb
+            pdf_disk = 1.0 / (jnp.pi * rb * rb)
+            e = Emission(o, -d, o, d, jnp.zeros((C,), dt), Le / (pdf_pos * pdf_disk), pdf_pos,
+                         pdf_disk * jnp.ones((), dt), jnp.asarray(k, jnp.int32),
+                         jnp.ones((), bool), delta)
+        pick = li == k
+        out = jax.tree.map(lambda a, b: jnp.where(pick, a, b), e, out)
+    return out._replace(pdf_pos=jax.lax.stop_gradient(out.pdf_pos),
+                        pdf_dir=jax.lax.stop_gradient(out.pdf_dir))

@@ -37,12 +37,14 @@ class FreeFlight(NamedTuple):
 
 
 def scatter_pdf(sigma_s, t):
-    t = jnp.minimum(t, BIG)
+    """Distance pdf of a scattering event at t (any shape; channels are the last axis of sigma_s)."""
+    t = jnp.minimum(t, BIG)[..., None]
     return jnp.mean(sigma_s * jnp.exp(-sigma_s * t), axis=-1)
 
 
 def pass_prob(sigma_s, t):
-    t = jnp.minimum(t, BIG)
+    """Probability of flying a distance t without a scattering event (any shape of t)."""
+    t = jnp.minimum(t, BIG)[..., None]
     return jnp.mean(jnp.exp(-sigma_s * t), axis=-1)
 
 

@@ -43,7 +43,8 @@ def direction_at_angle(rng, axis, cos_lo, cos_hi):
     s = np.sqrt(np.maximum(0.0, 1.0 - c * c))
     phi = rng.uniform(0.0, 2 * np.pi, n)
     t1, t2 = tangent_frame(axis)
-    return unit(c[:, None] * axis + s[:, None] * (np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2))
+    side = np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2
+    return unit(c[:, None] * axis + s[:, None] * side)
 
 
 def _dot(a, b):
@@ -138,7 +139,8 @@ def ref_basin(o, d, faces, tmin=0.0, tmax=np.inf):
             t = (LD(val) - o[:, ax]) / d[:, ax]
             p1 = o[:, a1] + t * d[:, a1]
             p2 = o[:, a2] + t * d[:, a2]
-        ok = (d[:, ax] != 0) & (t > tmin) & (t < tmax) & (p1 >= l1) & (p1 <= h1) & (p2 >= l2) & (p2 <= h2)
+        ok = ((d[:, ax] != 0) & (t > tmin) & (t < tmax)
+              & (p1 >= l1) & (p1 <= h1) & (p2 >= l2) & (p2 <= h2))
         t64 = np.where(ok, t, np.inf).astype(np.float64)
         closer = t64 < best
         m = np.minimum.reduce([p1 - l1, h1 - p1, p2 - l2, h2 - p2]).astype(np.float64)

@@ -16,8 +16,10 @@ lengths, the "scale"), and dividing by the cosine between ray and surface normal
 that absolute error by 1/cos (that is the conditioning of the problem itself: the same
 1/cos multiplies any perturbation of d). Hence
     |t - t_ref| <= C_ANALYTIC * eps * scale / cos,    C_ANALYTIC = 8,
-which for a typical float32 ray (scale ~3 m, cos ~0.5) is ~2e-5 m, i.e. a relative error
-~1e-5 of the distance; measured worst cases are ~4x below this bound.
+which for a typical float32 ray (scale ~3 m, cos ~0.5) is ~6e-6 m, i.e. a relative error
+~1e-5 of the distance or better; the measured worst case over all families is ~0.9 eps
+scale / cos (max |t - t_ref| / tol ~ 0.11, printed with -s). The heightfield has its own
+tolerances (see WATER_TOL).
 """
 
 from __future__ import annotations
@@ -210,7 +212,8 @@ def test_parallelogram_hits_and_misses(dt):
         k, o, d = rect_family(rng, fam, p0, e1, e2, N_RAYS // 2)
         ks.append(k), os_.append(o), ds.append(d)
     k, o, d = np.concatenate(ks), rounded(np.concatenate(os_), dt), rounded(np.concatenate(ds), dt)
-    t = np.asarray(_rects_t(rects, as_vec(o, dt), as_vec(d, dt), *zero_inf(dt)))[np.arange(N_RAYS), k]
+    t = np.asarray(_rects_t(rects, as_vec(o, dt), as_vec(d, dt), *zero_inf(dt)))
+    t = t[np.arange(N_RAYS), k]
     ref, _, _, cos = O.ref_parallelogram(o, d, p0[k], e1[k], e2[k])
     scale = np.where(np.isfinite(ref), ref, 0) + np.linalg.norm(o - p0[k], axis=1) + 3.0
     tol = C_ANALYTIC * eps_of(dt) * scale / np.maximum(cos, 1e-12)
@@ -227,7 +230,7 @@ def test_rect_normals(dt):
     got = G.rect_normal(rects, jnp.arange(8))
     got = np.stack([np.asarray(c, np.float64) for c in got], -1)
     np.testing.assert_allclose(got, want, atol=8 * eps_of(dt))
-    assert got.dtype == np.float64 and np.asarray(G.rect_normal(rects, 0).x).dtype == dt
+    assert np.asarray(G.rect_normal(rects, 0).x).dtype == dt
 
 
 # =============================================================================== spheres
@@ -281,7 +284,8 @@ def test_spheres_vs_reference(family, dt):
                   jnp.full(3, -1, jnp.int32))
     k, o, d = sphere_family(rng, family, c, r, N_RAYS)
     o, d = rounded(o, dt), rounded(d, dt)
-    t = np.asarray(_spheres_t(sph, as_vec(o, dt), as_vec(d, dt), *zero_inf(dt)))[np.arange(N_RAYS), k]
+    t = np.asarray(_spheres_t(sph, as_vec(o, dt), as_vec(d, dt), *zero_inf(dt)))
+    t = t[np.arange(N_RAYS), k]
     lo, hi, cos = O.ref_sphere_roots(o, d, c[k], r[k])
     if family == "surface":
         # the origin is on the sphere up to rounding: leaving outwards -> miss; going in ->
@@ -351,7 +355,8 @@ def basin_family(rng, family, n, dt):
         o, d = np.concatenate([o1, o2]), np.concatenate([d1, d2])
     elif family == "surface":  # exactly on the floor (up) or exactly on the x1 wall (-x)
         m = n // 2
-        o1 = np.stack([rng.uniform(-0.95, 0.95, m), np.full(m, lo[1]), rng.uniform(-0.95, 0.95, m)], 1)
+        o1 = np.stack([rng.uniform(-0.95, 0.95, m), np.full(m, lo[1]),
+                       rng.uniform(-0.95, 0.95, m)], 1)
         d1 = O.direction_at_angle(rng, np.tile([0.0, 1.0, 0.0], (m, 1)), 0.1, 1.0)
         o2 = np.stack([np.full(n - m, hi[0]), rng.uniform(-1.15, 0.45, n - m),
                        rng.uniform(-0.95, 0.95, n - m)], 1)
@@ -394,7 +399,7 @@ def test_basin_vs_reference(family, dt):
     np.testing.assert_array_equal(mat[clear], np.where(face[clear] == 0, 0, 1))  # floor, wall
 
 
-# =============================================================================== spheres and rects in a scene
+# =============================================================================== scene normals
 def shapes_doc():
     return {
         "camera": {"position": [0.0, 0.0, 5.0], "target": [0.0, 0.0, 0.0], "fov": 40.0,
@@ -460,7 +465,8 @@ def pools():
 
 
 def water_ref(water):
-    waves = np.stack([np.asarray(a, np.float64) for a in (water.amp, water.kx, water.kz, water.phase0)], 1)
+    waves = np.stack([np.asarray(a, np.float64)
+                      for a in (water.amp, water.kx, water.kz, water.phase0)], 1)
     return O.WaterRef(waves, float(water.level), np.asarray(water.footprint, np.float64))
 
 
@@ -475,10 +481,15 @@ def test_pool_water_is_the_documented_one(pools):
 # ~|o_y| eps + t |d_y| eps + sum|A| * (ulp of the phase |k.x + phase| <= 40 rad ~ 5e-6 rad)
 # + |grad h| (|o| + t) eps  <~ 3e-7 m. The root of f then errs by that over |f'(t*)|; on
 # the clean crossings tested for exactness |f'| >= SLOPE_MIN = 0.05, giving <= 6e-6 m, and
-# the float32 parameter t itself carries t eps. The bisection (2^-10 of a <= 0.18 m segment)
-# and two Newton steps (quadratic: |f''| <= sum A k^2 = 7.2 /m, so e2 <= (7.2 / (2 * 0.05))^2
-# * (9e-5)^4 ~ 3e-13 m) add nothing visible in float32. Hence float32: 1e-5 t + 1e-5 m;
-# float64: the same f error is ~1e-14 m, the Newton bound dominates: 1e-12 t + 1e-10 m.
+# the float32 parameter t itself carries t eps. The refinement (HEAD: 10 bisections leave
+# e0 <= 0.18 m / 2^11 = 9e-5 m, then two Newton steps, quadratic with C = max|f''| /
+# (2 min|f'|) = (sum A k^2 = 7.2 /m) / (2 * 0.05) = 72 /m: e1 = C e0^2 = 6e-7 m,
+# e2 = C e1^2 = 2.4e-11 m) adds nothing visible in float32. Hence float32: 1e-5 t + 1e-5 m;
+# float64: the same f error is ~1e-14 m, so a converged refinement is good to ~1e-13 m:
+# 1e-12 t + 1e-10 m. That is asserted for the steep families (hit / miss / surface, where
+# |f'| >= 0.119 and the bracket is <= 7 mm: measured <= 3e-15 m). `intersect_water` only
+# documents "float32 precision", so the grazing test holds both dtypes to the float32
+# tolerance (it prints the float64 error).
 SLOPE_MIN = 0.05
 WATER_TOL = {"float32": (1e-5, 1e-5), "float64": (1e-12, 1e-10)}
 
@@ -501,20 +512,23 @@ def water_family(rng, family, n, water):
         o = q - d * rng.uniform(0.2, 1.0, (n, 1))
     elif family == "miss":
         m = n // 3
-        o1 = np.stack([rng.uniform(-1, 1, m), rng.uniform(level + a + 1e-3, 1.0, m), rng.uniform(-1, 1, m)], 1)
+        xz = rng.uniform(-1, 1, (4, m))
+        o1 = np.stack([xz[0], rng.uniform(level + a + 1e-3, 1.0, m), xz[1]], 1)
         d1 = O.direction_at_angle(rng, np.tile([0.0, 1.0, 0.0], (m, 1)), 0.05, 1.0)  # up, above
-        o2 = np.stack([rng.uniform(-1, 1, m), rng.uniform(-1.1, level - a - 1e-3, m), rng.uniform(-1, 1, m)], 1)
+        o2 = np.stack([xz[2], rng.uniform(-1.1, level - a - 1e-3, m), xz[3]], 1)
         d2 = O.direction_at_angle(rng, np.tile([0.0, -1.0, 0.0], (m, 1)), 0.05, 1.0)  # down, below
         k = n - 2 * m  # in the slab but outside the footprint, going further out
-        o3 = np.stack([rng.uniform(1.01, 3.0, k), rng.uniform(level - a, level + a, k), rng.uniform(-1, 1, k)], 1)
+        o3 = np.stack([rng.uniform(1.01, 3.0, k), rng.uniform(level - a, level + a, k),
+                       rng.uniform(-1, 1, k)], 1)
         d3 = O.direction_at_angle(rng, np.tile([1.0, 0.0, 0.0], (k, 1)), 0.05, 1.0)
         flip = (rng.uniform(size=k) < 0.5)[:, None]
-        o3 = np.where(flip, -o3[:, [2, 1, 0]], o3)
-        d3 = np.where(flip, -d3[:, [2, 1, 0]], d3)
+        o3 = np.where(flip, o3[:, [2, 1, 0]] * [-1, 1, -1], o3)  # the -z side instead
+        d3 = np.where(flip, d3[:, [2, 1, 0]] * [-1, 1, -1], d3)
         o, d = np.concatenate([o1, o2, o3]), np.concatenate([d1, d2, d3])
     elif family == "grazing":
         # near-horizontal (|elevation| < 2 degrees) rays starting inside the wave slab
-        o = np.stack([rng.uniform(-1, 1, n), rng.uniform(level - a, level + a, n), rng.uniform(-1, 1, n)], 1)
+        o = np.stack([rng.uniform(-1, 1, n), rng.uniform(level - a, level + a, n),
+                      rng.uniform(-1, 1, n)], 1)
         el = rng.uniform(-MAX_GRAZE, MAX_GRAZE, n)
         az = rng.uniform(0, 2 * np.pi, n)
         d = np.stack([np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)], 1)
@@ -561,6 +575,10 @@ def test_water_vs_reference(pools, family, dt):
     assert_distances(t, first, water_tol(dt, first), f"water/{family}")
 
 
+MAX_GRAZING_MISS = 0.10
+F_ERR = {"float32": 3e-7, "float64": 1e-14}  # error of f(t) in the dtype (see WATER_TOL)
+
+
 def march_grid(water, o, d, steps=16):
     """The march interval of the documented algorithm: the ray clipped to footprint x
     `water_slab` (the package's slab, padded), split into `steps` segments."""
@@ -587,6 +605,7 @@ def test_water_grazing(pools, dt):
     """
     water, ref, o, d, t = _water_setup(pools, "grazing", dt, N_GRAZING)
     n = N_GRAZING
+    contract = np.float32  # "to float32 precision" (intersect_water's docstring), any dtype
     first = np.full(n, np.inf)
     clean = np.zeros(n, bool)
     matches_some_root = np.ones(n, bool)
@@ -603,37 +622,47 @@ def test_water_grazing(pools, dt):
         slope = abs(ref.df(o[i], d[i], roots[0]))
         clean[i] = in_seg == 1 and min(abs(fa), abs(fb)) >= 1e-5 and slope >= SLOPE_MIN
         if np.isfinite(t[i]):
-            matches_some_root[i] = np.min(np.abs(roots - t[i])) <= water_tol(dt, t[i])
+            # a non-clean root may be nearly tangent: allow the f error over its slope
+            j = np.argmin(np.abs(roots - t[i]))
+            sj = max(abs(ref.df(o[i], d[i], roots[j])), 1e-2)
+            tol_j = water_tol(contract, t[i]) + 4 * F_ERR[np.dtype(dt).name] / sj
+            matches_some_root[i] = abs(roots[j] - t[i]) <= tol_j
     has = np.isfinite(first)
+    tol = water_tol(contract, first)
+    found = np.isfinite(t) & has
+    exact = np.zeros(n, bool)
+    exact[found] = np.abs(t[found] - first[found]) <= tol[found]
+    missed = has & ~exact
+    frac = missed.sum() / has.sum()
+    cf = clean & found
+    worst = np.max(np.abs(t[cf] - first[cf]), initial=0.0)
+    print(f"\n[grazing heightfield {np.dtype(dt).name}] rays crossing: {has.sum()}/{n}, "
+          f"clean: {clean.sum()}, first crossing missed: {missed.sum()} ({frac:.1%}), "
+          f"hits not at any crossing: {np.sum(~matches_some_root)}, "
+          f"max |t - first crossing| over clean rays: {worst:.2g} m")
     # 1. no spurious hits, and every reported hit is a true crossing
     assert not np.any(np.isfinite(t) & ~has), "hit reported where the ray never crosses"
     assert np.all(matches_some_root), f"{np.sum(~matches_some_root)} hits are not crossings"
     # 2. clean crossings are exact
-    tol = water_tol(dt, first)
-    found = np.isfinite(t) & has
-    exact = np.zeros(n, bool)
-    exact[found] = np.abs(t[found] - first[found]) <= tol[found]
     bad = clean & ~exact
     assert not np.any(bad), (f"{bad.sum()}/{clean.sum()} clean grazing crossings wrong, e.g. "
                              f"t={t[bad][0]} ref={first[bad][0]}")
     # 3. the limitation: how often the first crossing is missed (inf or a later root).
-    # Measured with this seed: ~4% of the rays that cross (float32 and float64 alike;
-    # ~35% of all crossing rays are not "clean", but most of those are still found since a
-    # missed pair needs an even number of roots in one segment). Bound 0.10 = the measured
-    # value + > 4 binomial standard errors (n ~ 130 crossing rays: sigma ~ 1.7%); a
-    # regression of the bracketing (e.g. fewer or misplaced segments) shows up well above it.
-    missed = has & ~exact
-    frac = missed.sum() / has.sum()
-    print(f"\n[grazing heightfield {np.dtype(dt).name}] rays crossing: {has.sum()}/{n}, "
-          f"clean: {clean.sum()}, first crossing missed: {missed.sum()} ({frac:.1%})")
-    assert has.sum() > 0.3 * n and clean.sum() > 0.3 * has.sum()
+    # Measured with this seed (with a converged refinement - the bisection + Newton of
+    # 65b11de, or 6+ Illinois steps): 274 of the 512 rays cross, 254 of those crossings are
+    # clean, and the first crossing is missed on 11 rays = 4.0% (float32 and float64 alike;
+    # a missed pair needs an even number of roots in one segment, so most unclean crossings
+    # are still found). Every miss must be unclean (asserted above), so the fraction can
+    # never exceed the unclean fraction (7.3%). The bound 0.10 = measured + 5 binomial
+    # standard errors (sqrt(0.04 * 0.96 / 274) = 1.2%): a regression of the bracketing
+    # (fewer or misplaced segments) shows up above it.
+    assert has.sum() > 0.3 * n and clean.sum() > 0.5 * has.sum()
+    assert missed.sum() <= (has & ~clean).sum()
     assert frac <= MAX_GRAZING_MISS
 
 
-MAX_GRAZING_MISS = 0.10
 
-
-# =============================================================================== water normals, membership
+# ========================================================================= water normal, inside
 @pytest.mark.parametrize("dt", DTYPES)
 def test_water_normal_vs_finite_differences(pools, dt):
     water = pools[np.dtype(dt).name].water
@@ -669,8 +698,9 @@ def test_inside_water(pools, dt):
     pts.append(np.stack([x, below, z], 1)); want.append(np.ones(n, bool))  # in the water
     pts.append(np.stack([x, fl - gap, z], 1)); want.append(np.zeros(n, bool))  # under the floor
     xo = rng.choice([-1, 1], n) * rng.uniform(1.001, 2.0, n)  # outside the footprint in x / z
-    pts.append(np.stack([xo, rng.uniform(fl + 0.01, -0.05, n), z], 1)); want.append(np.zeros(n, bool))
-    pts.append(np.stack([z, rng.uniform(fl + 0.01, -0.05, n), xo], 1)); want.append(np.zeros(n, bool))
+    ys = rng.uniform(fl + 0.01, -0.05, (2, n))
+    pts.append(np.stack([xo, ys[0], z], 1)); want.append(np.zeros(n, bool))
+    pts.append(np.stack([z, ys[1], xo], 1)); want.append(np.zeros(n, bool))
     p = rounded(np.concatenate(pts), dt)
     got = np.asarray(G.inside_water(water, as_vec(p, dt)))
     np.testing.assert_array_equal(got, np.concatenate(want))

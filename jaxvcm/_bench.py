@@ -1,0 +1,808 @@
+"""`jaxvcm bench`: the speed-vs-error report (docs/benchmarks.md + docs/bench_<scene>.png).
+
+For every (scene, algorithm) the scene is rendered progressively (independent passes
+`pass_key(seed, i)`, accumulated in float64 on the host) and the running image is sampled
+at fixed wall-time budgets; each sample is compared to a long reference render of the
+same scene, size and maximum depth. A second table gives raw throughput at each scene's
+full size. Results go into a section of the markdown file delimited by
+`<!-- bench:TAG:begin -->` / `<!-- bench:TAG:end -->` (TAG defaults to the algorithms
+joined by "-"), so runs of other algorithms or tags keep each other's sections; the
+numbers of every section are also kept in a JSON sidecar next to the markdown file
+(`benchmarks.json`), from which the per-scene plots (one line per algorithm) are redrawn.
+
+References are stored as EXR + PNG + JSON in the reference directory and reused when the
+scene file's sha256, image size, algorithm, configuration and reference seed match and
+the stored reference is at least as long as requested (`--rebuild-references` forces a
+new one). They use a seed different from the measured renders, so their samples are
+independent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import hashlib
+import json
+import math
+import os
+import platform
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+PROG = "jaxvcm bench"
+DEFAULT_SCENES = ("pool.toml", "pool_sun.toml", "pool_sky.toml", "pool_wall.toml")
+DEFAULT_BUDGETS = (2.0, 4.0, 8.0, 16.0)
+DEFAULT_SIZE = 128
+DEFAULT_REFERENCE_TIME = 120.0
+QUICK_SIZE = 32
+QUICK_BUDGETS = (0.5, 1.0)
+QUICK_REFERENCE_TIME = 5.0
+THROUGHPUT_DEPTH = 8
+TARGET_SCENE = "pool.toml"
+TARGET_PATHS_PER_S = 1.5e6  # the issue's target: PT, depth 8, pool.toml, 2-core machine
+TARGET_CPUS = 2
+REF_SEED_OFFSET = 1_000_003  # reference seed = seed + offset: independent samples
+MAX_SEED = 2**30
+REL_EPS = 0.01  # relMAE denominator offset
+_TAG_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
+_SECTION_RE = re.compile(
+    r"<!-- bench:(?P<tag>[A-Za-z0-9_.+-]+):begin -->\n?(?P<body>.*?)"
+    r"<!-- bench:(?P=tag):end -->\n?", re.S)
+
+
+# ----------------------------------------------------------------------------- arguments
+class _Usage(ValueError):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise _Usage(message)
+
+
+def _pos_float(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {s!r}")
+    return v
+
+
+def _int_ge(lo: int, hi: int | None = None):
+    def conv(s: str) -> int:
+        try:
+            v = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+        if v < lo or (hi is not None and v >= hi):
+            rng = f">= {lo}" if hi is None else f"in [{lo}, {hi})"
+            raise argparse.ArgumentTypeError(f"must be {rng}, got {v}")
+        return v
+    return conv
+
+
+def _budgets(s: str) -> tuple[float, ...]:
+    parts = [p for p in s.replace(" ", "").split(",") if p]
+    if not parts:
+        raise argparse.ArgumentTypeError("expected comma-separated seconds, e.g. 2,4,8,16")
+    return tuple(sorted({_pos_float(p) for p in parts}))
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description="Speed-vs-error benchmark: renders each (scene, "
+                "algorithm) for fixed wall-time budgets, compares to a long reference, "
+                "writes a markdown table and log-log plots.")
+    p.add_argument("--scenes", nargs="+", metavar="SCENE",
+                   help="scene files (default: scenes/pool.toml pool_sun.toml pool_sky.toml "
+                   "pool_wall.toml; relative paths are tried from the current directory, "
+                   "then from the repository root)")
+    p.add_argument("--algorithms", nargs="+", metavar="ALG",
+                   help="algorithms, comma or space separated (default: pt)")
+    p.add_argument("--budgets", type=_budgets, metavar="SEC,SEC,...",
+                   help="wall-time budgets in seconds (default 2,4,8,16)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--size", type=_int_ge(1), metavar="N",
+                   help=f"image width = height of the error runs (default {DEFAULT_SIZE})")
+    g.add_argument("--full-size", action="store_true",
+                   help="use each scene's own image size for the error runs")
+    p.add_argument("--max-depth", type=_int_ge(1), default=None, metavar="D",
+                   help="maximum path length of the error runs and references (default 8)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--reference-time", type=_pos_float, metavar="SEC",
+                   help=f"seconds per reference render (default {DEFAULT_REFERENCE_TIME:g})")
+    g.add_argument("--reference-passes", type=_int_ge(2), metavar="N",
+                   help="passes per reference render instead of a time")
+    p.add_argument("--reference-dir", metavar="DIR",
+                   help="where references are stored and reused (default docs/bench_refs/)")
+    p.add_argument("--rebuild-references", action="store_true",
+                   help="render new references even if matching ones are stored")
+    p.add_argument("--reference-algorithm", default="pt", metavar="ALG",
+                   help="algorithm of the reference renders (default pt)")
+    p.add_argument("--seed", type=_int_ge(0, MAX_SEED), default=0,
+                   help="seed of the measured renders (references use seed + "
+                   f"{REF_SEED_OFFSET})")
+    p.add_argument("--out", metavar="FILE.md", help="markdown report (default docs/benchmarks.md;"
+                   " plots bench_<scene>.png and benchmarks.json go next to it)")
+    p.add_argument("--tag", metavar="TAG",
+                   help="name of this run's section (default: the algorithms joined by '-')")
+    p.add_argument("--throughput-only", action="store_true",
+                   help="skip references and errors; measure speed only")
+    p.add_argument("--throughput-passes", type=_int_ge(0), default=5, metavar="N",
+                   help="timed passes of the full-size throughput rows (default 5; 0: none)")
+    p.add_argument("--quick", action="store_true",
+                   help=f"tiny run: size {QUICK_SIZE}, budgets "
+                   f"{','.join(f'{b:g}' for b in QUICK_BUDGETS)}, reference "
+                   f"{QUICK_REFERENCE_TIME:g} s, throughput at the same small size")
+    p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+    return p
+
+
+# ----------------------------------------------------------------------------- helpers
+def repo_root() -> Path:
+    """The checkout this package lives in (parent of the package dir) if it has scenes/,
+    otherwise the current directory."""
+    root = Path(__file__).resolve().parent.parent
+    return root if (root / "scenes").is_dir() else Path.cwd()
+
+
+def _resolve_scene(s: str) -> Path:
+    p = Path(s)
+    if p.is_file():
+        return p
+    if not p.is_absolute():
+        for base in (repo_root(), repo_root() / "scenes"):
+            q = base / p
+            if q.is_file():
+                return q
+    raise FileNotFoundError(f"{s}: scene file not found")
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _split_list(items) -> list[str]:
+    out: list[str] = []
+    for it in items:
+        out += [x for x in it.replace(",", " ").split() if x]
+    return out
+
+
+class _Log:
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+
+    def __call__(self, msg: str) -> None:
+        if not self.quiet:
+            print(f"bench: {msg}", file=sys.stderr, flush=True)
+
+
+def _metrics(img: np.ndarray, ref: np.ndarray) -> dict:
+    d = img - ref
+    rmse = float(np.sqrt(np.mean(d * d)))
+    mref = float(np.mean(ref))
+    return {
+        "rmse": rmse,
+        "rel_rmse": rmse / mref if mref > 0 else float("nan"),
+        "rel_mae": float(np.mean(np.abs(d) / (np.abs(ref) + REL_EPS))),
+    }
+
+
+def _paths(diag) -> tuple[int, int | None]:
+    cam = int(diag.camera_paths)
+    lp = getattr(diag, "light_paths", None)
+    return cam, (None if lp is None else int(lp))
+
+
+def _ready(x):
+    import jax
+
+    return jax.block_until_ready(x)
+
+
+# ----------------------------------------------------------------------------- rendering
+def _warm_up(scene, config, seed: int) -> float:
+    """Compile (or load from the persistent cache) and run one pass; returns its seconds."""
+    from ._render import _render_pass_jit, pass_key
+
+    t0 = time.perf_counter()
+    _ready(_render_pass_jit(scene, pass_key(seed, 0), config))
+    return time.perf_counter() - t0
+
+
+def _budget_run(scene, config, seed: int, budgets) -> list[dict]:
+    """One progressive render sampled at each budget: for budget B, the image after the
+    last pass completed at or before B seconds (the first pass if even that took longer).
+    Returns one dict per budget with passes, seconds, path counts and the image."""
+    from ._render import _render_pass_jit, pass_key
+
+    budgets = sorted(budgets)
+    out: list[dict] = []
+    acc = None
+    prev = None  # (passes, seconds, acc, cam, light, nonfinite) after the previous pass
+    cam_tot = 0
+    light_tot: int | None = None
+    nonfinite = 0
+    i = 0
+    t0 = time.perf_counter()
+    while len(out) < len(budgets):
+        img, diag = _render_pass_jit(scene, pass_key(seed, i), config)
+        img = np.asarray(_ready(img), dtype=np.float64)
+        cam, light = _paths(diag)
+        nonfinite += int(diag.nonfinite)
+        acc = img if acc is None else acc + img  # new array: `prev` keeps the old one
+        i += 1
+        t = time.perf_counter() - t0
+        cam_tot += cam
+        if light is not None:
+            light_tot = (light_tot or 0) + light
+        cur = (i, t, acc, cam_tot, light_tot, nonfinite)
+        while len(out) < len(budgets) and t > budgets[len(out)]:
+            snap = prev if prev is not None else cur
+            out.append(_budget_row(budgets[len(out)], snap, over=prev is None))
+        if len(out) < len(budgets) and t == budgets[len(out)]:
+            out.append(_budget_row(budgets[len(out)], cur, over=False))
+        prev = cur
+    return out
+
+
+def _budget_row(budget, snap, over: bool) -> dict:
+    n, t, acc, cam, light, nonfinite = snap
+    return {"budget": budget, "passes": n, "seconds": t, "image": acc / n,
+            "camera_paths": cam, "light_paths": light, "nonfinite": nonfinite,
+            "over_budget": over}
+
+
+def _throughput(scene, config, seed: int, passes: int) -> dict:
+    """Median wall seconds of `passes` single passes (each waited for; no host copy)."""
+    from ._render import _render_pass_jit, pass_key
+
+    times, cams, lights = [], [], []
+    for i in range(passes):
+        t0 = time.perf_counter()
+        img, diag = _ready(_render_pass_jit(scene, pass_key(seed, i), config))
+        times.append(time.perf_counter() - t0)
+        c, lp = _paths(diag)
+        cams.append(c)
+        lights.append(lp)
+    med = float(np.median(times))
+    cam = float(np.median(cams))
+    row = {"passes": passes, "median_s": med, "min_s": float(min(times)),
+           "max_s": float(max(times)), "camera_paths_per_s": cam / med,
+           "total_paths_per_s": None}
+    if all(lp is not None for lp in lights):
+        row["total_paths_per_s"] = (cam + float(np.median(lights))) / med
+    return row
+
+
+# ----------------------------------------------------------------------------- references
+def _ref_paths(ref_dir: Path, stem: str, alg: str, w: int, h: int, depth: int):
+    base = ref_dir / f"{stem}_{alg}_{w}x{h}_d{depth}"
+    return base.with_suffix(".exr"), base.with_suffix(".json")
+
+
+def _load_reference(exr: Path, side: Path, want: dict, req_passes, req_time, shape,
+                    forbidden_seed: int):
+    """The stored reference if it matches `want` and is long enough, else None (+ why)."""
+    from ._film import read_exr
+
+    if not (exr.is_file() and side.is_file()):
+        return None, "none stored"
+    try:
+        meta = json.loads(side.read_text())
+    except (OSError, ValueError) as e:
+        return None, f"unreadable sidecar ({e})"
+    for k, v in want.items():
+        if meta.get(k) != v:
+            return None, f"{k} differs"
+    if meta.get("seed") == forbidden_seed:
+        return None, "its seed equals the measured renders' seed"
+    if req_passes is not None and int(meta.get("passes", 0)) < req_passes:
+        return None, f"only {meta.get('passes')} passes < {req_passes}"
+    if req_time is not None and float(meta.get("seconds", 0.0)) < 0.95 * req_time:
+        return None, f"only {meta.get('seconds')} s < {req_time:g} s"
+    try:
+        img = read_exr(str(exr)).astype(np.float64)
+    except (OSError, ValueError) as e:
+        return None, f"unreadable EXR ({e})"
+    if img.shape != shape:
+        return None, f"shape {img.shape} != {shape}"
+    return (img, meta), "match"
+
+
+def _render_reference(scene, config, seed: int, req_passes, req_time, log, label) -> tuple:
+    """Average passes (float64) for `req_passes` passes or `req_time` seconds (>= 2
+    passes), keeping the even and odd passes apart to estimate the reference's noise."""
+    from ._render import _render_pass_jit, pass_key
+
+    acc = [None, None]
+    n = [0, 0]
+    nonfinite = 0
+    t0 = time.perf_counter()
+    last = t0
+    i = 0
+    while True:
+        img, diag = _render_pass_jit(scene, pass_key(seed, i), config)
+        img = np.asarray(_ready(img), dtype=np.float64)
+        nonfinite += int(diag.nonfinite)
+        k = i % 2
+        acc[k] = img if acc[k] is None else acc[k] + img
+        n[k] += 1
+        i += 1
+        now = time.perf_counter()
+        if now - last > 15:
+            log(f"{label}: {i} passes, {now - t0:.0f} s")
+            last = now
+        if i >= 2 and ((req_passes is not None and i >= req_passes)
+                       or (req_time is not None and now - t0 >= req_time)):
+            break
+    seconds = time.perf_counter() - t0
+    ref = (acc[0] + acc[1]) / i
+    a, b = acc[0] / n[0], acc[1] / n[1]
+    # Var(a - b) = s^2 (1/n0 + 1/n1), Var(ref) = s^2 / N, per pixel.
+    noise = float(np.sqrt(np.mean((a - b) ** 2) * (1.0 / i) / (1.0 / n[0] + 1.0 / n[1])))
+    return ref, {"passes": i, "seconds": round(seconds, 3), "noise_rmse": noise,
+                 "nonfinite": nonfinite}
+
+
+def _get_reference(a, scene_path: Path, scene, stem: str, sha: str, log) -> tuple:
+    from . import __version__
+    from ._config import RenderConfig
+    from ._film import write_outputs
+
+    config = RenderConfig(algorithm=a.reference_algorithm, max_depth=a.max_depth)
+    w, h = scene.camera.width, scene.camera.height
+    ref_seed = a.seed + REF_SEED_OFFSET
+    exr, side = _ref_paths(a.reference_dir, stem, config.algorithm, w, h, config.max_depth)
+    want = {"scene_sha256": sha, "width": w, "height": h, "algorithm": config.algorithm,
+            "max_depth": config.max_depth, "config": dataclasses.asdict(config)}
+    shape = (h, w, 3)
+    label = f"reference {stem} {w}x{h} {config.algorithm} d{config.max_depth}"
+    if not a.rebuild_references:
+        got, why = _load_reference(exr, side, want, a.reference_passes, a.reference_time,
+                                   shape, a.seed)
+        if got is not None:
+            img, meta = got
+            log(f"{label}: reused {exr} ({meta['passes']} passes, {meta['seconds']} s)")
+            return img, meta, True
+        log(f"{label}: rendering ({why}; "
+            + (f"{a.reference_passes} passes" if a.reference_passes
+               else f"{a.reference_time:g} s") + ")")
+    else:
+        log(f"{label}: rendering (--rebuild-references)")
+    _warm_up(scene, config, ref_seed)
+    img, info = _render_reference(scene, config, ref_seed, a.reference_passes,
+                                  a.reference_time, log, label)
+    mean = float(np.mean(img))
+    meta = dict(want)
+    meta.update({
+        "scene": str(scene_path), "scene_name": scene.name, "seed": ref_seed,
+        "request": ({"passes": a.reference_passes} if a.reference_passes
+                    else {"seconds": a.reference_time}),
+        **info, "noise_rel_rmse": info["noise_rmse"] / mean if mean > 0 else None,
+        "mean": mean, "version": __version__, "date": _now(),
+    })
+    a.reference_dir.mkdir(parents=True, exist_ok=True)
+    write_outputs(str(exr), img.astype(np.float32), meta)
+    log(f"{label}: {info['passes']} passes in {info['seconds']} s -> {exr}")
+    # use exactly what later runs will read back (float32)
+    return img.astype(np.float32).astype(np.float64), meta, False
+
+
+# ----------------------------------------------------------------------------- report
+def _now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def _machine() -> dict:
+    import jax
+
+    from . import __version__
+
+    try:
+        devices = [str(d) for d in jax.devices()]
+    except RuntimeError as e:  # pragma: no cover
+        devices = [f"unavailable ({e})"]
+    return {"date": _now(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "python": platform.python_version(), "jax": jax.__version__,
+            "devices": devices, "jaxvcm": __version__}
+
+
+def _fmt_rate(x) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:,.0f}"
+
+
+def _fmt_g(x, digits=4) -> str:
+    return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _machine_line(m: dict) -> str:
+    return (f"{m['date']}; os.cpu_count() = {m['cpu_count']}; {m['platform']} "
+            f"({m['processor']}); Python {m['python']}; jax {m['jax']}; devices: "
+            f"{', '.join(m['devices'])}; jaxvcm {m['jaxvcm']}")
+
+
+HEADER = """\
+# jaxvcm benchmarks: speed vs error
+
+Generated by `jaxvcm bench` (`jaxvcm/_bench.py`). Each run writes its own section between
+`<!-- bench:TAG:begin -->` and `<!-- bench:TAG:end -->` markers (TAG: the algorithms, or
+`--tag`) and keeps the other sections; do not edit inside the markers by hand. The numbers
+of all sections are also in `{json}`, from which the plots `bench_<scene>.png` (relative
+RMSE vs seconds, log-log, one line per algorithm) are drawn.
+
+## Methodology
+
+- **Error runs.** Each (scene, algorithm) is rendered progressively at the run's image size
+  and maximum depth: independent passes (`spp` camera paths per pixel each, keys
+  `pass_key(seed, i)`), accumulated in float64 on the host. Compilation is excluded: one
+  warm-up pass runs before the clock starts. Wall time is `time.perf_counter`, each pass is
+  waited for (`block_until_ready`) and the time includes the device-to-host copy and the
+  accumulation, as in `jaxvcm render`. One progressive run is sampled at every budget B:
+  the row shows the image after the last pass that completed within B seconds (its actual
+  elapsed time in *seconds*), so the rows of one run are correlated. Rows marked `*` took
+  longer than the budget for even one pass.
+- **Rates.** passes/s = passes / seconds; camera paths/s = passes x W x H x spp / seconds;
+  when an algorithm also traces light paths (`Diagnostics.light_paths`), total paths/s =
+  (camera + light paths) / seconds.
+- **Reference.** A long render per (scene, size, max depth) with the reference algorithm
+  and a different seed (seed + {off}, so its samples are independent of the measured ones),
+  for `--reference-time` seconds or `--reference-passes` passes. It is stored as EXR with a
+  JSON sidecar (scene sha256, size, algorithm, config, passes, seconds, seed) in the
+  reference directory and reused while those match.
+- **Errors** (over all pixels and channels): RMSE = sqrt(mean((img - ref)^2));
+  **relRMSE = RMSE / mean(ref)**; relMAE = mean(|img - ref| / (ref + {eps})).
+  The reference is itself noisy: its RMSE is estimated from the means a, b of its even and
+  odd passes (n_a, n_b of N) as rms(a - b) sqrt((1/N) / (1/n_a + 1/n_b)) and given as
+  "ref. noise". Measured MSE ~ true MSE + ref. noise^2, so errors close to that floor say
+  little. Only unbiased estimators are compared against the PT reference for now; a
+  biased algorithm (PPM/BPM/VCM) would also show its bias here.
+- **Throughput.** At each scene's full size (`--quick`: the small size) and max depth
+  {depth}: median wall seconds per pass over the timed passes (each waited for; no host
+  copy, no accumulation) after a warm-up pass; camera paths/s = W x H x spp / median.
+  The project's target is path tracing at max depth {depth} on `scenes/{tscene}` at
+  >= {target:.1f} M camera paths/s on a {tcpu}-core machine.
+- Timings are wall clock on a machine that may be shared with other processes; treat them
+  as indicative.
+
+## Machine (latest run)
+
+{machine}
+
+"""
+
+
+def _section(tag: str, res: dict) -> str:
+    m = res["machine"]
+    L = [f"## Run `{tag}`", "",
+         f"- {_machine_line(m)}",
+         f"- command: `{res['command']}`",
+         f"- algorithms: {', '.join(res['algorithms'])}; seed {res['seed']}"]
+    if res["throughput_only"]:
+        L.append("- throughput only (no references, no errors)")
+    else:
+        L.append(f"- error runs: size {res['size_desc']}, max depth {res['max_depth']}, "
+                 f"budgets {', '.join(f'{b:g}' for b in res['budgets'])} s; references: "
+                 f"{res['reference_algorithm']}, {res['reference_request']}")
+    L.append("")
+    rows = res["rows"]
+    if rows:
+        has_light = any(r.get("light_paths") is not None for r in rows)
+        L += ["### Passes within the budgets" if res["throughput_only"] else "### Error vs time",
+              ""]
+        cols = ["scene", "algorithm", "size", "budget s", "passes", "seconds", "passes/s",
+                "camera paths/s"]
+        if has_light:
+            cols.append("total paths/s")
+        if not res["throughput_only"]:
+            cols += ["RMSE", "relRMSE", "relMAE", "ref. noise (rel)"]
+        L += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        for r in rows:
+            s = r["seconds"]
+            cells = [r["scene"], r["algorithm"], f"{r['width']}x{r['height']}",
+                     f"{r['budget']:g}", f"{r['passes']}{'*' if r['over_budget'] else ''}",
+                     f"{s:.3f}", f"{r['passes'] / s:.3g}", _fmt_rate(r["camera_paths"] / s)]
+            if has_light:
+                lp = r.get("light_paths")
+                cells.append(_fmt_rate((r["camera_paths"] + lp) / s) if lp is not None
+                             else "–")
+            if not res["throughput_only"]:
+                cells += [_fmt_g(r.get("rmse")), _fmt_g(r.get("rel_rmse")),
+                          _fmt_g(r.get("rel_mae")), _fmt_g(r.get("ref_noise_rel"), 3)]
+            L.append("| " + " | ".join(cells) + " |")
+        L.append("")
+        if any(r["nonfinite"] for r in rows):
+            L += ["**Warning:** some passes produced non-finite contributions (zeroed): "
+                  + ", ".join(f"{r['scene']}/{r['algorithm']}: {r['nonfinite']}"
+                              for r in rows if r["nonfinite"]), ""]
+    refs = res.get("references") or {}
+    if refs:
+        L += ["References:", ""]
+        for stem, r in refs.items():
+            L.append(f"- {stem}: {r['algorithm']}, {r['width']}x{r['height']}, max depth "
+                     f"{r['max_depth']}, {r['passes']} passes in {r['seconds']} s (seed "
+                     f"{r['seed']}), mean {_fmt_g(r.get('mean'))}, noise RMSE "
+                     f"{_fmt_g(r.get('noise_rmse'))} (rel {_fmt_g(r.get('noise_rel_rmse'), 3)})"
+                     f"{'' if r.get('reused') else ' (rendered in this run)'}")
+        L.append("")
+    tp = res["throughput"]
+    if tp:
+        has_light = any(r.get("total_paths_per_s") is not None for r in tp)
+        L += ["### Throughput", ""]
+        cols = ["scene", "algorithm", "size", "max depth", "timed passes", "median s/pass",
+                "min s", "max s", "camera paths/s"]
+        if has_light:
+            cols.append("total paths/s")
+        L += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        for r in tp:
+            cells = [r["scene"], r["algorithm"], f"{r['width']}x{r['height']}",
+                     str(r["max_depth"]), str(r["passes"]), f"{r['median_s']:.4g}",
+                     f"{r['min_s']:.4g}", f"{r['max_s']:.4g}",
+                     _fmt_rate(r["camera_paths_per_s"])]
+            if has_light:
+                cells.append(_fmt_rate(r.get("total_paths_per_s")))
+            L.append("| " + " | ".join(cells) + " |")
+        L.append("")
+    L += [_target_text(res), ""]
+    stems = sorted({r["scene"] for r in rows if r.get("rel_rmse") is not None})
+    for stem in stems:
+        L += [f"![{stem}: relative RMSE vs seconds](bench_{stem}.png)", ""]
+    return "\n".join(L)
+
+
+def _target_text(res: dict) -> str:
+    m = res["machine"]
+    tstem = Path(TARGET_SCENE).stem
+    hit = [r for r in res["throughput"] if r["scene"] == tstem and r["algorithm"] == "pt"
+           and r["max_depth"] == THROUGHPUT_DEPTH and r["full_size"]]
+    head = (f"**Target** (path tracing, max depth {THROUGHPUT_DEPTH}, `scenes/{TARGET_SCENE}` "
+            f"at full size, >= {TARGET_PATHS_PER_S / 1e6:.1f} M camera paths/s on a "
+            f"{TARGET_CPUS}-core machine): ")
+    if not hit:
+        return head + "not measured in this run (needs pt on scenes/pool.toml and full-size " \
+                      "throughput rows)."
+    r = hit[0]
+    x = r["camera_paths_per_s"]
+    ratio = x / TARGET_PATHS_PER_S
+    verdict = "met" if ratio >= 1 else f"NOT met ({1 / ratio:.3g}x too slow)"
+    cpu = m["cpu_count"]
+    note = "" if cpu == TARGET_CPUS else (f" Note: this machine has {cpu} CPUs, not "
+                                          f"{TARGET_CPUS}.")
+    return (head + f"measured {x / 1e6:.4g} M camera paths/s at {r['width']}x{r['height']} "
+            f"= {ratio:.3g} x the target: {verdict}.{note}")
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text()
+    except FileNotFoundError:
+        return ""
+
+
+def _merge_markdown(old: str, header: str, tag: str, body: str) -> str:
+    """Header (regenerated) + the old sections in order, with `tag`'s replaced or appended."""
+    sections = [(m.group("tag"), m.group(0)) for m in _SECTION_RE.finditer(old)]
+    block = f"<!-- bench:{tag}:begin -->\n{body.rstrip()}\n<!-- bench:{tag}:end -->\n"
+    out, done = [], False
+    for t, text in sections:
+        if t == tag:
+            if not done:
+                out.append(block)
+                done = True
+        else:
+            out.append(text if text.endswith("\n") else text + "\n")
+    if not done:
+        out.append(block)
+    return header + "\n".join(out)
+
+
+def _write_text(path: Path, text: str) -> None:
+    from ._film import atomic_path
+
+    with atomic_path(str(path)) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+
+
+def _plot(path: Path, stem: str, all_results: dict) -> bool:
+    """relRMSE vs seconds, log-log, one line per (tag, algorithm) that has errors for `stem`."""
+    from matplotlib.figure import Figure
+
+    from ._film import atomic_path
+
+    lines = []
+    floors = []
+    for tag, res in all_results.items():
+        by_alg: dict[str, list] = {}
+        for r in res.get("rows", []):
+            if (r["scene"] == stem and r.get("rel_rmse") is not None
+                    and math.isfinite(r["rel_rmse"]) and r["rel_rmse"] > 0):
+                by_alg.setdefault(r["algorithm"], []).append(r)
+        for alg, rs in by_alg.items():
+            rs.sort(key=lambda r: r["seconds"])
+            lines.append((alg, tag, rs))
+            if rs[0].get("ref_noise_rel"):
+                floors.append(rs[0]["ref_noise_rel"])
+    if not lines:
+        return False
+    algs = [a for a, _, _ in lines]
+    fig = Figure(figsize=(6.0, 4.2), dpi=110)
+    ax = fig.add_subplot(1, 1, 1)
+    for alg, tag, rs in lines:
+        label = alg if algs.count(alg) == 1 else f"{alg} [{tag}]"
+        w, h = rs[0]["width"], rs[0]["height"]
+        ax.loglog([r["seconds"] for r in rs], [r["rel_rmse"] for r in rs], "o-",
+                  label=f"{label} ({w}x{h})")
+    alg, tag, rs = lines[0]
+    t0, e0 = rs[0]["seconds"], rs[0]["rel_rmse"]
+    ts = np.array([t0, max(r["seconds"] for _, _, q in lines for r in q)])
+    if ts[1] > ts[0]:
+        ax.loglog(ts, e0 * np.sqrt(t0 / ts), ":", color="gray", label="∝ 1/sqrt(t)")
+    if floors:
+        ax.axhline(min(floors), color="gray", ls="--", lw=0.8, label="reference noise")
+    ax.set_xlabel("wall seconds (compile excluded)")
+    ax.set_ylabel("relative RMSE (RMSE / mean(ref))")
+    ax.set_title(f"{stem}: error vs time")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(str(path)) as tmp:
+        fig.savefig(tmp, format="png")
+    return True
+
+
+def _publish(out: Path, tag: str, res: dict, log) -> None:
+    """Update the markdown section, the JSON sidecar and the plots of `res`'s scenes."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    side = out.with_suffix(".json")
+    try:
+        allres = json.loads(_read(side) or "{}")
+        if not isinstance(allres, dict):
+            allres = {}
+    except ValueError:
+        allres = {}
+    allres[tag] = res
+    _write_text(side, json.dumps(allres, indent=1, default=_json_default) + "\n")
+    header = HEADER.format(json=side.name, off=REF_SEED_OFFSET, eps=REL_EPS,
+                           depth=THROUGHPUT_DEPTH, tscene=TARGET_SCENE,
+                           target=TARGET_PATHS_PER_S / 1e6, tcpu=TARGET_CPUS,
+                           machine="- " + _machine_line(res["machine"]))
+    _write_text(out, _merge_markdown(_read(out), header, tag, _section(tag, res)))
+    for stem in sorted({r["scene"] for r in res["rows"]}):
+        png = out.parent / f"bench_{stem}.png"
+        if _plot(png, stem, allres):
+            log(f"plot -> {png}")
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    return str(o)
+
+
+# ----------------------------------------------------------------------------- main
+def _settings(argv):
+    from ._config import ALGORITHMS
+
+    a = _parser().parse_args(argv)
+    a.algorithms = _split_list(a.algorithms or ["pt"])
+    for alg in a.algorithms + [a.reference_algorithm]:
+        if alg not in ALGORITHMS:
+            raise _Usage(f"unknown algorithm {alg!r}; one of {', '.join(ALGORITHMS)}")
+    a.algorithms = list(dict.fromkeys(a.algorithms))
+    root = repo_root()
+    names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
+                                                     for s in DEFAULT_SCENES]
+    a.scene_paths = [_resolve_scene(s) for s in names]
+    stems = [p.stem for p in a.scene_paths]
+    if len(set(stems)) != len(stems):
+        raise _Usage(f"--scenes: scene file names must be distinct, got {', '.join(stems)}")
+    if a.budgets is None:
+        a.budgets = QUICK_BUDGETS if a.quick else DEFAULT_BUDGETS
+    if a.size is None and not a.full_size:
+        a.size = QUICK_SIZE if a.quick else DEFAULT_SIZE
+    if a.max_depth is None:
+        a.max_depth = 8
+    if a.reference_time is None and a.reference_passes is None:
+        a.reference_time = QUICK_REFERENCE_TIME if a.quick else DEFAULT_REFERENCE_TIME
+    a.reference_dir = Path(a.reference_dir) if a.reference_dir else root / "docs" / "bench_refs"
+    a.out = Path(a.out) if a.out else root / "docs" / "benchmarks.md"
+    if a.out.suffix.lower() != ".md":
+        raise _Usage(f"--out: must end in .md, got {str(a.out)!r}")
+    a.tag = a.tag or "-".join(a.algorithms)
+    if not _TAG_RE.match(a.tag):
+        raise _Usage(f"--tag: only letters, digits and _.+- allowed, got {a.tag!r}")
+    return a
+
+
+def run(a, argv) -> dict:
+    """Run the benchmark described by the parsed settings `a`; returns the results."""
+    import jaxvcm
+
+    from ._config import RenderConfig
+
+    log = _Log(a.quiet)
+    res = {
+        "machine": _machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
+        "algorithms": a.algorithms, "seed": a.seed, "throughput_only": a.throughput_only,
+        "size_desc": "scene's own" if a.full_size else f"{a.size}x{a.size}",
+        "max_depth": a.max_depth, "budgets": list(a.budgets),
+        "reference_algorithm": a.reference_algorithm,
+        "reference_request": (f"{a.reference_passes} passes" if a.reference_passes
+                              else f"{a.reference_time:g} s"),
+        "rows": [], "throughput": [], "references": {},
+    }
+    for path in a.scene_paths:
+        stem = path.stem
+        sha = _sha256(path)
+        size = {} if a.full_size else {"width": a.size, "height": a.size}
+        scene = jaxvcm.load_scene(path, **size)
+        w, h = scene.camera.width, scene.camera.height
+        ref = None
+        if not a.throughput_only:
+            ref, meta, reused = _get_reference(a, path, scene, stem, sha, log)
+            res["references"][stem] = {**{k: meta.get(k) for k in (
+                "algorithm", "width", "height", "max_depth", "passes", "seconds", "seed",
+                "noise_rmse", "noise_rel_rmse", "mean")}, "reused": reused}
+        for alg in a.algorithms:
+            config = RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            tw = _warm_up(scene, config, a.seed)
+            log(f"{stem} {alg} {w}x{h} d{a.max_depth}: warm-up {tw:.2f} s; timing "
+                f"{max(a.budgets):g} s")
+            for r in _budget_run(scene, config, a.seed, a.budgets):
+                img = r.pop("image")
+                row = {"scene": stem, "algorithm": alg, "width": w, "height": h,
+                       "max_depth": a.max_depth, "spp": config.spp, **r}
+                if ref is not None:
+                    row.update(_metrics(img, ref))
+                    row["ref_noise_rel"] = res["references"][stem]["noise_rel_rmse"]
+                res["rows"].append(row)
+                log(f"  {r['budget']:g} s: {r['passes']} passes in {r['seconds']:.2f} s"
+                    + (f", relRMSE {row['rel_rmse']:.4g}" if ref is not None else ""))
+        if a.throughput_passes > 0:
+            tsize = size if a.quick else {}
+            tscene = jaxvcm.load_scene(path, **tsize)
+            tw_, th_ = tscene.camera.width, tscene.camera.height
+            for alg in a.algorithms:
+                config = RenderConfig(algorithm=alg, max_depth=THROUGHPUT_DEPTH)
+                _warm_up(tscene, config, a.seed)
+                r = _throughput(tscene, config, a.seed, a.throughput_passes)
+                res["throughput"].append({
+                    "scene": stem, "algorithm": alg, "width": tw_, "height": th_,
+                    "max_depth": THROUGHPUT_DEPTH, "full_size": not tsize, **r})
+                log(f"{stem} {alg} throughput {tw_}x{th_} d{THROUGHPUT_DEPTH}: median "
+                    f"{r['median_s']:.3f} s/pass, {r['camera_paths_per_s']:,.0f} camera paths/s")
+        _publish(a.out, a.tag, res, log)  # after every scene: an interrupted run keeps some
+    log(f"report -> {a.out}")
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        a = _settings(argv)
+    except SystemExit as e:  # --help
+        return e.code if isinstance(e.code, int) else 0
+    except (ValueError, OSError) as e:
+        print(f"jaxvcm: error: bench: {' '.join(str(e).split())}", file=sys.stderr, flush=True)
+        return 2
+    from .cli import _enable_compilation_cache
+
+    _enable_compilation_cache()  # leaves an already configured cache alone
+    try:
+        res = run(a, argv)
+    except (ValueError, OSError) as e:  # e.g. a malformed scene file: one line, status 2
+        print(f"jaxvcm: error: bench: {' '.join(str(e).split())}", file=sys.stderr, flush=True)
+        return 2
+    if not a.quiet:
+        print(_target_text(res))
+    print(a.out)
+    return 0

@@ -1,0 +1,94 @@
+"""Multiple importance sampling as explicit sums over every technique (Veach 1997, ch. 10;
+pbrt's BDPT `MISWeight`; Georgiev et al. 2012 for the merging extension).
+
+A full path x_0 ... x_k (x_0 on the light, x_k the camera) is described per vertex by
+    a_i = p->(x_i): pdf of generating x_i from the light side (area / volume / solid-angle
+          measure, Russian roulette included),
+    b_i = p<-(x_i): pdf of generating x_i from the camera side,
+and the connection technique with s light vertices has
+    p_s = prod_{i<s} a_i  prod_{i>=s} b_i,    so  p_j / p_s = exp(c_j - c_s),
+    c_j = sum_{i<j} log(a_i / b_i)                      (the cumulative log ratio).
+Working with c in log space, the weight of technique s is
+    w_s = n_s p_s^beta / sum_{valid j} n_j p_j^beta = exp(-logsumexp_j [beta (c_j - c_s) + log n_j - log n_s])
+which cannot overflow or underflow however long the path or tiny the pdfs (float32 safe).
+
+Delta vertices. After a delta (specular) vertex the pdf of the next vertex is a Dirac
+delta in both directions; following pbrt these pdfs are remapped to 1 (the tracer stores
+1), and every technique that would connect at a delta vertex is invalid, so the Diracs
+never appear in a ratio. Zero pdfs (e.g. the back of a one-sided light seen from the
+reverse side) make a technique impossible; they are excluded explicitly rather than
+through 0 * inf.
+
+Valid connection techniques j in [0, k+1] (j light vertices, t = k+1-j camera vertices):
+    j = 0      the camera subpath hits the light: the light is not a delta light;
+    1 <= j <= k  connect x_{j-1} and x_j: neither is a delta vertex (x_0 on any light and
+               the pinhole x_k can always be connected to: NEE and light tracing);
+    j = k+1    the light subpath hits the camera: impossible for a pinhole.
+The algorithm flags restrict the set further (pt: j = 0, and j = 1 for k >= 2 (NEE; for
+k = 1, j = 1 is light tracing); lt: j = k; bdpt: all).
+Multiplicities n_j: light tracing (j = k) is evaluated once per light path for every
+pixel, n = N_light (with the per-pixel camera pdf), all others n = 1.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+TECH_ALL = "bdpt"
+
+
+def technique_mask(algorithm: str, k: Int[Array, ""], L: int) -> Bool[Array, "L1"]:
+    """Techniques j in [0, L] (L = max vertices) enabled by the algorithm for path length k."""
+    j = jnp.arange(L + 1)
+    if algorithm == "pt":  # emitter hits (s = 0) and NEE (s = 1 with t >= 2, i.e. k >= 2)
+        return (j == 0) | ((j == 1) & (k >= 2))
+    if algorithm == "lt":
+        return j == k
+    if algorithm == "bdpt":
+        return j <= k
+    raise ValueError(f"algorithm: no connection techniques for {algorithm!r}")
+
+
+def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L"],
+               k: Int[Array, ""], s: Int[Array, ""], delta_light: Bool[Array, ""],
+               infinite_light: Bool[Array, ""], log_n_lt: Float[Array, ""],
+               algorithm: str = "bdpt", beta: float = 1.0
+               ) -> Float[Array, ""]:
+    """Weight of technique s for the path x_0..x_k (entries i > k are ignored).
+
+    a, b: per-vertex light- and camera-side pdfs (delta-remapped, RR included);
+    delta: per-vertex delta flag; delta_light: x_0 is on a delta light (the sun);
+    infinite_light: x_0 is at infinity (sun, sky): it cannot be joined to the pinhole (k = 1);
+    log_n_lt: log of the light-tracing multiplicity N_light; beta: 1 balance, 2 power.
+    """
+    L = a.shape[0]
+    dt = a.dtype
+    i = jnp.arange(L)
+    in_path = i <= k
+    pos_a = (a > 0) | ~in_path
+    pos_b = (b > 0) | ~in_path
+    la = jnp.log(jnp.where(in_path & (a > 0), a, 1.0))
+    lb = jnp.log(jnp.where(in_path & (b > 0), b, 1.0))
+    # c_j = sum_{i<j} (log a_i - log b_i), j = 0..L
+    c = jnp.concatenate([jnp.zeros((1,), dt), jnp.cumsum(la - lb)])
+    j = jnp.arange(L + 1)
+    # p_j > 0  <=>  a_i > 0 for all i < j  and  b_i > 0 for all k >= i >= j
+    za = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.cumsum(~pos_a).astype(jnp.int32)])
+    zb_suffix = jnp.concatenate([jnp.cumsum((~pos_b)[::-1])[::-1], jnp.zeros((1,), jnp.int32)])
+    positive = (za == 0) & (zb_suffix == 0)
+    # connectability of technique j: x_{j-1} and x_j non-delta (with the end rules)
+    dpad = jnp.concatenate([delta & in_path, jnp.zeros((1,), bool)])
+    left_delta = jnp.concatenate([jnp.zeros((1,), bool), delta & in_path])  # x_{j-1}
+    conn = jnp.where(j == 0, ~delta_light,
+                     jnp.where(j == k + 1, False,
+                               ~jnp.where(j == 1, False, left_delta) & ~jnp.where(j == k, False, dpad)))
+    conn = conn & ~((j == 1) & (k == 1) & infinite_light)
+    valid = conn & positive & (j <= k + 1) & technique_mask(algorithm, k, L)
+    log_n = jnp.where(j == k, log_n_lt, 0.0).astype(dt)
+    e = beta * (c - c[s] + log_n - log_n[s])  # (n_j p_j / n_s p_s)^beta in log space
+    e = jnp.where(valid, e, -jnp.inf)
+    w = jnp.exp(-jax.nn.logsumexp(e))
+    ok = valid[s]
+    return jnp.where(ok, w, 0.0)

@@ -1,0 +1,251 @@
+"""One tracer for camera and light subpaths -> fixed-shape vertex records [D, N].
+
+The same per-ray step serves both directions; only the transport mode differs (camera
+paths carry radiance: refraction scales by 1/eta^2; light paths carry importance: it does
+not) and what is recorded about emitters. Per vertex v_j the record holds position,
+normal or medium flag, the direction back to v_{j-1}, the throughput arriving at v_j, and
+the pdfs that explicit-sum MIS needs (`_mis.py`):
+    pdf_fwd  p(v_j | v_{j-1}) in area (surface) / volume (medium) measure, or solid angle
+             for a vertex at infinity (escaped to the sky); 1 after a delta vertex,
+    pdf_rev  p(v_{j-1} | v_j): the reverse pdf of the previous vertex, known once v_j has
+             sampled its own continuation (1 if v_j is a delta vertex),
+both without Russian roulette: the survival probability of a vertex depends on its index
+along whichever subpath generates it, so `q` (the vertex's local survival probability)
+is stored and the MIS assembly applies rr(index, q) for either direction.
+The distance-sampling pdfs of the water (p_scatter for a medium end, P_pass for a surface
+end; `_media.py`) are part of the area/volume pdfs of segments that run through water.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from . import _geometry as G
+from . import _lights as Lt
+from . import _materials as M
+from . import _media as Md
+from . import _vec as V
+from ._config import RenderConfig
+from ._scene import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR, Scene, Water
+from ._vec import Vec3
+
+KIND_MEDIUM = 3  # vertex kind of a scattering event in the water (after the MAT_* kinds)
+KIND_NONE = -1
+N_UNIFORMS = 6  # per bounce: channel, distance, direction (2), lobe, roulette
+Q_SPECULAR = 0.95  # local RR survival at delta and medium vertices
+
+
+class Vertex(NamedTuple):
+    p: Vec3  # position (for an escaped vertex: the direction to the sky)
+    n: Vec3  # geometric normal (surface vertices)
+    wo: Vec3  # unit direction from this vertex back to the previous one
+    beta: Array  # [C] throughput arriving at the vertex (before it scatters)
+    pdf_fwd: Array  # p(v_j | v_{j-1}), RR-free, delta-remapped (see module doc)
+    pdf_rev: Array  # p(v_{j-1} | v_j), RR-free, delta-remapped
+    kind: Array  # MAT_* of the surface, KIND_MEDIUM, or KIND_NONE
+    mat: Array  # material id (surfaces)
+    light: Array  # light id of an emitting surface hit (-1 otherwise)
+    Le: Array  # [C] emitted radiance towards wo (camera paths: emitter / sky hits)
+    q: Array  # local Russian-roulette survival probability of the vertex
+    seg_water: Array  # the segment arriving at this vertex ran through the water
+    delta: Array  # the vertex scatters by a delta lobe
+    escaped: Array  # vertex at infinity (the ray left the scene)
+    alive: Array  # the vertex exists
+
+
+class WalkState(NamedTuple):
+    o: Vec3  # origin of the current ray (offset off its surface)
+    p_prev: Vec3  # the vertex the ray left
+    n_prev: Vec3  # its normal
+    d: Vec3  # unit direction of the current ray
+    beta: Array  # [C] throughput
+    alive: Array  # path still being extended
+    in_water: Array  # the current ray travels in the water
+    pdf_w: Array  # pdf of d at p_prev: solid angle, or perpendicular area if prev_inf
+    prev_delta: Array  # p_prev scattered by a delta lobe
+    prev_medium: Array  # p_prev is a medium vertex
+    prev_inf: Array  # p_prev is a light vertex at infinity (sun / sky disk)
+    prev_conv: Array  # p_prev's reverse pdf needs no area conversion (camera, infinite light)
+
+
+def rr(index, q, cfg: RenderConfig):
+    """Survival probability for continuing from a vertex with `index` segments before it."""
+    return jnp.where(index >= cfg.rr_depth, q, 1.0)
+
+
+def local_q(kind, albedo):
+    q_d = jnp.clip(jax.lax.stop_gradient(jnp.max(albedo, axis=-1)), 0.05, 0.95)
+    return jnp.where(kind == MAT_DIFFUSE, q_d, Q_SPECULAR)
+
+
+def dist_pdf(water: Water, seg_water, target_medium, d):
+    """Distance-sampling factor of a segment of length d: p_scatter(d) if it ends in a medium
+    vertex, P_pass(d) if it ends on a surface; 1 outside the water."""
+    if not water.enabled:
+        return jnp.ones_like(d)
+    ss = jax.lax.stop_gradient(water.sigma_s)
+    f = jnp.where(target_medium, Md.scatter_pdf(ss, d), Md.pass_prob(ss, d))
+    return jnp.where(seg_water, f, 1.0)
+
+
+def to_area(pdf_w, target_medium, target_n: Vec3, w: Vec3, d, seg_water, water: Water,
+            infinite_source=False):
+    """Solid-angle pdf of direction w (towards the target, distance d) -> area/volume pdf of
+    the target vertex. From an infinite source the pdf is already per perpendicular area."""
+    cos = jnp.where(target_medium, 1.0, jnp.abs(V.dot(target_n, w)))
+    g = jnp.where(infinite_source, cos, cos / jnp.maximum(d * d, 1e-30))
+    return pdf_w * g * dist_pdf(water, seg_water, target_medium, d)
+
+
+def bsdf_pdf(scene: Scene, kind, mat, medium_d: Vec3, wo: Vec3, wi: Vec3, n: Vec3):
+    """Solid-angle pdf of sampling wi at a vertex with outgoing-side direction wo (pointing
+    away from it), for the non-delta kinds; delta kinds return 0 (callers remap)."""
+    albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
+    _, pdf_s = M.eval_bsdf(kind, albedo, wo, wi, n)
+    if scene.water.enabled:
+        # phase functions: mu between the propagation direction (-wo) and wi
+        ph = Md.phase_eval(scene.water.phase_kind, scene.water, V.dot(-wo, wi))
+        pdf_s = jnp.where(kind == KIND_MEDIUM, jax.lax.stop_gradient(ph), pdf_s)
+    return pdf_s
+
+
+def eval_f(scene: Scene, kind, mat, wo: Vec3, wi: Vec3, n: Vec3):
+    """Scattering factor of a connection at a vertex: f |cos(wi)| on surfaces, the phase
+    function in the medium (sigma_s is already in the throughput). [C]"""
+    C = scene.channels
+    albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
+    f, _ = M.eval_bsdf(kind, albedo, wo, wi, n)
+    if scene.water.enabled:
+        ph = Md.phase_eval(scene.water.phase_kind, scene.water, V.dot(-wo, wi))
+        f = jnp.where(kind == KIND_MEDIUM, ph * jnp.ones((C,), ph.dtype), f)
+    return f
+
+
+def offset(p: Vec3, n: Vec3, w: Vec3) -> Vec3:
+    scale = 1.0 + jnp.maximum(jnp.maximum(jnp.abs(p.x), jnp.abs(p.y)), jnp.abs(p.z))
+    eps = 1e-4 * scale
+    s = jnp.where(V.dot(w, n) >= 0, eps, -eps)
+    return p + n * s
+
+
+def spawn(p: Vec3, n: Vec3, medium, w: Vec3) -> Vec3:
+    return V.where(medium, p, offset(p, n, w))
+
+
+def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
+         ) -> tuple[WalkState, Vertex]:
+    """Extend one subpath by one segment; `index` = segments before the new vertex minus 1."""
+    water = scene.water
+    dt = s.o.x.dtype
+    C = scene.channels
+    kinds = jnp.asarray(scene.materials.kind, jnp.int32)
+
+    # ---- intersect, free flight ----
+    hit = G.intersect_scene(scene, s.o, s.d, 0.0, jnp.inf, cfg.march_steps)
+    if water.enabled:
+        ff = Md.sample_free_flight(water, hit.t, u[0], u[1])
+        scatter = s.alive & s.in_water & ff.scatter
+        beta = jnp.where(s.in_water, s.beta * ff.weight, s.beta)
+        t = jnp.where(s.in_water, ff.t, hit.t)
+    else:
+        scatter = jnp.zeros((), bool)
+        beta = s.beta
+        t = hit.t
+    surf = ~scatter & jnp.isfinite(hit.t)
+    esc = ~scatter & ~jnp.isfinite(hit.t)
+    p = s.o + s.d * jnp.where(jnp.isfinite(t), t, 0.0)
+    wo = -s.d
+    n = hit.n
+    dist = jnp.where(esc, 1.0, V.length(p - s.p_prev))
+    mat = jnp.maximum(hit.mat, 0)
+    kind = jnp.where(scatter, KIND_MEDIUM, jnp.where(surf, kinds[mat], KIND_NONE))
+    albedo = scene.materials.albedo[mat]
+    ior = scene.materials.ior[mat]
+
+    # ---- forward pdf of this vertex ----
+    fwd_area = to_area(s.pdf_w, scatter, n, s.d, dist, s.in_water, water, s.prev_inf)
+    pdf_fwd = jnp.where(esc, s.pdf_w, fwd_area)
+    pdf_fwd = jnp.where(s.prev_delta, 1.0, pdf_fwd)
+
+    # ---- emission seen by camera paths ----
+    if radiance:
+        Le_s, _ = Lt.emitted_surface(scene, hit.light, wo, n, dist)
+        Le_e, _ = Lt.emitted_escape(scene, s.d)
+        Le = jnp.where(surf, Le_s, jnp.where(esc & ~s.in_water, Le_e, 0.0))
+        v_alive = s.alive & (scatter | surf | (esc & ~s.in_water))
+    else:
+        Le = jnp.zeros((C,), dt)
+        v_alive = s.alive & (scatter | surf)
+    light_id = jnp.where(surf, hit.light, -1)
+    p_rec = V.where(esc, s.d, p)  # escaped: store the direction to the sky
+
+    # ---- sample the continuation ----
+    bs = M.sample_bsdf(kind, albedo, ior, wo, n, u[2], u[3], u[4], radiance=radiance)
+    if water.enabled:
+        wi_ph, pdf_ph = Md.phase_sample(water.phase_kind, water, s.d, u[2], u[3])
+        wi = V.where(scatter, wi_ph, bs.wi)
+        beta_next = jnp.where(scatter, beta, beta * bs.weight)
+        pdf_w = jnp.where(scatter, pdf_ph, bs.pdf)
+    else:
+        wi, beta_next, pdf_w = bs.wi, beta * bs.weight, bs.pdf
+    delta = ~scatter & bs.delta & surf
+
+    # ---- reverse pdf of the previous vertex (sampling wo at this vertex, coming from wi) ----
+    rev_w = bsdf_pdf(scene, kind, mat, scatter, wi, wo, n)
+    rev = to_area(rev_w, s.prev_medium, s.n_prev, wo, dist, s.in_water, water, False)
+    rev = jnp.where(s.prev_conv, rev_w, rev)
+    rev = jnp.where(delta, 1.0, rev)
+
+    # ---- Russian roulette (local survival probability, applied by index) ----
+    q_loc = jnp.where(scatter, Q_SPECULAR, local_q(kind, albedo))
+    q = rr(index + 1, q_loc, cfg)
+    alive = v_alive & ~esc & jnp.any(beta_next > 0) & (u[5] < q)
+    beta_next = beta_next / q
+
+    vertex = Vertex(p_rec, n, wo, beta, jax.lax.stop_gradient(pdf_fwd),
+                    jax.lax.stop_gradient(rev), kind, mat, light_id, Le, q_loc, s.in_water,
+                    delta, esc & v_alive, v_alive)
+
+    # ---- spawn ----
+    o = spawn(p, n, scatter, wi)
+    in_water = (scatter | G.inside_water(water, o)) if water.enabled else s.in_water
+    state = WalkState(o, p, n, wi, beta_next, alive, in_water, jax.lax.stop_gradient(pdf_w),
+                      delta, scatter, jnp.zeros((), bool), jnp.zeros((), bool))
+    return state, vertex
+
+
+def trace(scene: Scene, cfg: RenderConfig, radiance: bool, s0: WalkState, u, n_steps: int
+          ) -> Vertex:
+    """Trace N subpaths from batched start states; u: [n_steps, N, N_UNIFORMS]."""
+    vstep = jax.vmap(step, in_axes=(None, None, None, None, 0, 0))
+
+    def body(s, x):
+        i, ui = x
+        return vstep(scene, cfg, radiance, i, s, ui)
+
+    idx = jnp.arange(n_steps, dtype=jnp.int32)
+    _, verts = jax.lax.scan(body, s0, (idx, u[:n_steps]))
+    # pdf_rev was computed at v_{j+1} for v_j: shift it back by one vertex. The last
+    # vertex's reverse pdf is only ever set by a connection.
+    rev_next = jnp.concatenate([verts.pdf_rev[1:], jnp.ones_like(verts.pdf_rev[:1])], axis=0)
+    return verts._replace(pdf_rev=rev_next), verts.pdf_rev[0]
+
+
+def camera_start(scene: Scene, o: Vec3, d: Vec3, pdf_w) -> WalkState:
+    dt = o.x.dtype
+    C = scene.channels
+    z = jnp.zeros((), dt)
+    f = jnp.zeros((), bool)
+    return WalkState(o, o, V.from_array(scene.camera.forward), d, jnp.ones((C,), dt),
+                     jnp.ones((), bool), G.inside_water(scene.water, o), pdf_w, f, f, f,
+                     jnp.ones((), bool))
+
+
+def light_start(scene: Scene, e: Lt.Emission) -> WalkState:
+    return WalkState(e.o, e.p, e.n, e.d, e.beta1, jnp.any(e.beta1 > 0),
+                     G.inside_water(scene.water, e.o), e.pdf_dir, jnp.zeros((), bool),
+                     jnp.zeros((), bool), e.infinite, e.infinite)

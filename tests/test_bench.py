@@ -1,0 +1,81 @@
+"""`jaxvcm bench --quick`: a markdown table with finite rates and errors, a plot, reused
+references and per-tag sections that keep each other."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from jaxvcm import _bench
+
+
+def _table(md: str, first_col: str) -> list[dict]:
+    """Rows of the markdown table whose header starts with `| first_col |`."""
+    lines = md.splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith(f"| {first_col} |"))
+    head = [c.strip() for c in lines[start].strip("|").split("|")]
+    rows = []
+    for ln in lines[start + 2:]:
+        if not ln.startswith("|"):
+            break
+        rows.append(dict(zip(head, (c.strip() for c in ln.strip("|").split("|")))))
+    return rows
+
+
+def _num(s: str) -> float:
+    return float(s.replace(",", "").rstrip("*"))
+
+
+def test_bench_quick(tmp_path, capsys):
+    out, refs = tmp_path / "bench.md", tmp_path / "refs"
+    args = ["--quick", "--scenes", "scenes/pool_sky.toml", "--out", str(out),
+            "--reference-dir", str(refs)]
+    assert _bench.main(args) == 0
+    err = capsys.readouterr().err
+    assert "rendering" in err and "reused" not in err
+
+    md = out.read_text()
+    assert md.startswith("# ")
+    assert "os.cpu_count()" in md and "jax " in md
+    assert md.count("<!-- bench:pt:begin -->") == 1 and md.count("<!-- bench:pt:end -->") == 1
+    rows = _table(md, "scene")
+    assert [r["budget s"] for r in rows] == ["0.5", "1"]
+    for r in rows:
+        assert r["scene"] == "pool_sky" and r["algorithm"] == "pt" and r["size"] == "32x32"
+        assert _num(r["passes"]) >= 1
+        for col in ("passes/s", "camera paths/s"):
+            v = _num(r[col])
+            assert math.isfinite(v) and v > 0, (col, r)
+        for col in ("RMSE", "relRMSE", "relMAE"):
+            v = _num(r[col])
+            assert math.isfinite(v) and v >= 0, (col, r)
+    tp = _table(md, "scene | algorithm | size | max depth")
+    assert len(tp) == 1 and _num(tp[0]["camera paths/s"]) > 0
+    assert (tmp_path / "bench_pool_sky.png").stat().st_size > 1000
+
+    sidecar = refs / "pool_sky_pt_32x32_d8.json"
+    meta = json.loads(sidecar.read_text())
+    assert meta["passes"] >= 2 and meta["width"] == 32 and meta["max_depth"] == 8
+    assert meta["seed"] != 0 and len(meta["scene_sha256"]) == 64
+    before = (sidecar.stat().st_mtime_ns, (refs / "pool_sky_pt_32x32_d8.exr").stat().st_mtime_ns)
+
+    # A second run under another tag reuses the reference and keeps the first section.
+    assert _bench.main(args + ["--tag", "again", "--budgets", "0.5"]) == 0
+    err = capsys.readouterr().err
+    assert "reused" in err and "rendering" not in err
+    after = (sidecar.stat().st_mtime_ns, (refs / "pool_sky_pt_32x32_d8.exr").stat().st_mtime_ns)
+    assert after == before
+    md2 = out.read_text()
+    assert md2.count("<!-- bench:pt:begin -->") == 1 and "<!-- bench:again:end -->" in md2
+    assert md2.index("bench:pt:end") < md2.index("bench:again:begin")
+    assert set(json.loads((tmp_path / "bench.json").read_text())) == {"pt", "again"}
+    # The pt section is untouched: its table rows are still those of the first run.
+    assert _table(md2, "scene") == rows
+
+
+def test_bench_bad_arguments(capsys):
+    assert _bench.main(["--algorithms", "nope"]) == 2
+    assert _bench.main(["--budgets", "0"]) == 2
+    assert _bench.main(["--scenes", "no/such/scene.toml"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 3 and all(ln.startswith("jaxvcm: error: bench: ") for ln in err)
