@@ -52,10 +52,10 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig
         u = jax.random.uniform(kp, (D, N, SP.N_UNIFORMS), dt)
         cverts, _ = SP.trace(scene, cfg, True, s0, u, D)
         cends = CN.camera_ends(scene, o, cverts, N)
-        CN.emitter_hits(scene, cfg, cends, cverts, out)
+        out.update(CN.emitter_hits(scene, cfg, cends, cverts))
         if D >= 2:
             u_nee = jax.random.uniform(kn, (D - 1, N, 3), dt)
-            CN.next_event(scene, cfg, cends, u_nee, out)
+            out.update(CN.next_event(scene, cfg, cends, u_nee))
         stats["camera_vertices"] = jnp.sum(cverts.alive)
     # ---- light subpaths ----
     if uses_light_paths(cfg.algorithm):
@@ -68,9 +68,9 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig
         lends = CN.light_ends(scene, e, rev0, lverts, N)
         cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)),
                              _camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))[0])
-        CN.light_tracing(scene, cfg, lends, e, cam_o, out)
+        out.update(CN.light_tracing(scene, cfg, lends, e, cam_o))
         if cfg.algorithm == "bdpt":
-            CN.connections(scene, cfg, lends, cends, e, out)
+            out.update(CN.connections(scene, cfg, lends, cends, e))
         stats["light_vertices"] = jnp.sum(lverts.alive)
     # ---- film ----
     images = {}

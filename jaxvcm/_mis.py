@@ -41,7 +41,7 @@ TECH_ALL = "bdpt"
 
 def technique_mask(algorithm: str, k: Int[Array, ""], L: int) -> Bool[Array, "L1"]:
     """Techniques j in [0, L] (L = max vertices) enabled by the algorithm for path length k."""
-    j = jnp.arange(L + 1)
+    j = jnp.arange(L + 1, dtype=jnp.int32)
     if algorithm == "pt":  # emitter hits (s = 0) and NEE (s = 1 with t >= 2, i.e. k >= 2)
         return (j == 0) | ((j == 1) & (k >= 2))
     if algorithm == "lt":
@@ -65,7 +65,9 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
     """
     L = a.shape[0]
     dt = a.dtype
-    i = jnp.arange(L)
+    k = jnp.asarray(k, jnp.int32)
+    s = jnp.asarray(s, jnp.int32)
+    i = jnp.arange(L, dtype=jnp.int32)
     in_path = i <= k
     pos_a = (a > 0) | ~in_path
     pos_b = (b > 0) | ~in_path
@@ -73,10 +75,11 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
     lb = jnp.log(jnp.where(in_path & (b > 0), b, 1.0))
     # c_j = sum_{i<j} (log a_i - log b_i), j = 0..L
     c = jnp.concatenate([jnp.zeros((1,), dt), jnp.cumsum(la - lb)])
-    j = jnp.arange(L + 1)
+    j = jnp.arange(L + 1, dtype=jnp.int32)
     # p_j > 0  <=>  a_i > 0 for all i < j  and  b_i > 0 for all k >= i >= j
     za = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.cumsum(~pos_a).astype(jnp.int32)])
-    zb_suffix = jnp.concatenate([jnp.cumsum((~pos_b)[::-1])[::-1], jnp.zeros((1,), jnp.int32)])
+    zb_suffix = jnp.concatenate([jnp.cumsum((~pos_b)[::-1])[::-1].astype(jnp.int32),
+                                 jnp.zeros((1,), jnp.int32)])
     positive = (za == 0) & (zb_suffix == 0)
     # connectability of technique j: x_{j-1} and x_j non-delta (with the end rules)
     dpad = jnp.concatenate([delta & in_path, jnp.zeros((1,), bool)])

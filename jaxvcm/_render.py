@@ -11,39 +11,36 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from . import _camera
+from ._bidir import render_pass_bidir, uses_camera_paths, uses_light_paths
 from ._config import RenderConfig
-from ._integrator import N_UNIFORMS, trace_camera_paths
 from ._scene import Scene
 
 
 class Diagnostics(eqx.Module):
     """Per-pass result flags (errors are values under jit)."""
 
-    nonfinite: Int[Array, ""]  # contributions that were NaN/Inf (zeroed; must be 0)
-    camera_paths: Int[Array, ""]  # number of camera paths traced
-    mean_length: Float[Array, ""]  # mean number of path vertices that existed
+    nonfinite: Int[Array, ""]  # pixel-technique contributions that were NaN/Inf (zeroed; must be 0)
+    camera_paths: Int[Array, ""]  # camera subpaths traced
+    light_paths: Int[Array, ""]  # light subpaths traced
+    camera_vertices: Int[Array, ""]  # camera subpath vertices that existed
+    light_vertices: Int[Array, ""]  # light subpath vertices that existed
 
 
 def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig()
                 ) -> tuple[Float[Array, "H W C"], Diagnostics]:
-    """One independent pass: `config.spp` camera paths per pixel, returned as an unbiased
-    per-pixel radiance estimate. Pure and jit/vmap/grad-able (config is static)."""
+    """One independent pass of `config.algorithm` on the one bidirectional core: an unbiased
+    per-pixel radiance estimate from `config.spp` camera subpaths per pixel and/or as many
+    light subpaths. Pure and jit/vmap/grad-able (config is static)."""
     cam = scene.camera
-    H, W, C = cam.height, cam.width, scene.channels
-    N = H * W * config.spp
-    dt = scene.camera.origin.dtype
-    k_cam, k_path = jax.random.split(key)
-    u_cam = jax.random.uniform(k_cam, (2, N), dt)
-    u = jax.random.uniform(k_path, (config.max_depth, N, N_UNIFORMS), dt)
-    pixel = jnp.arange(N, dtype=jnp.int32) % (H * W)
-    o, d = jax.vmap(_camera.generate_ray, in_axes=(None, 0, 0, 0))(cam, pixel, u_cam[0], u_cam[1])
-    state, vertices = trace_camera_paths(scene, config, o, d, u)
-    img = state.L.reshape(config.spp, H, W, C).mean(axis=0)
+    N = cam.height * cam.width * config.spp
+    img, bad, stats = render_pass_bidir(scene, key, config)
+    zero = jnp.zeros((), jnp.int32)
     diag = Diagnostics(
-        nonfinite=jnp.sum(state.nonfinite),
-        camera_paths=jnp.asarray(N, jnp.int32),
-        mean_length=jnp.mean(jnp.sum(vertices.alive, axis=0).astype(dt)),
+        nonfinite=bad,
+        camera_paths=jnp.asarray(N if uses_camera_paths(config.algorithm) else 0, jnp.int32),
+        light_paths=jnp.asarray(N if uses_light_paths(config.algorithm) else 0, jnp.int32),
+        camera_vertices=stats.get("camera_vertices", zero).astype(jnp.int32),
+        light_vertices=stats.get("light_vertices", zero).astype(jnp.int32),
     )
     return img, diag
 
