@@ -148,3 +148,66 @@ def test_sun_paths_are_not_hit_by_camera_rays():
     w = weights(a, b, [False, False, False], 2, True, True, 1, "bdpt", 1.0, jnp.float64)
     assert w[0] == 0.0
     assert abs(w.sum() - 1) < 1e-12
+
+
+# ---------------------------------------------------------------- the renderer's assembly
+from jaxvcm import RenderConfig  # noqa: E402
+from jaxvcm._connect import Pdfs, weight  # noqa: E402
+
+
+@st.composite
+def full_paths(draw):
+    k = draw(st.integers(1, LMAX - 1))
+    logs = st.floats(-6.0, 6.0, allow_nan=False)
+    A = [10.0 ** draw(logs) for _ in range(k + 1)]
+    B = [10.0 ** draw(logs) for _ in range(k + 1)]
+    B[k] = 1.0
+    q = [draw(st.floats(0.05, 1.0)) for _ in range(k + 1)]
+    delta = [False] + [draw(st.booleans()) for _ in range(k - 1)] + [False]
+    return k, A, B, q, delta, draw(st.booleans()), draw(st.booleans())
+
+
+@pytest.mark.parametrize("mis", ["balance", "power"])
+@settings(max_examples=40, deadline=None)
+@given(path=full_paths(), garbage=st.floats(1e-3, 1e3))
+def test_renderer_assembly_from_subpaths_sums_to_one(path, garbage, mis):
+    # For each technique s the renderer sees two subpaths, each with stored pdfs that are
+    # only right away from the join (the last two vertices of each side are re-evaluated
+    # at the join, `_connect.path_pdfs`). Fill those stored slots with garbage, pass the
+    # true values as the join overrides, and the weights over all s must sum to one and
+    # equal the oracle built from the true full-path pdfs with each direction's roulette.
+    k, A, B, q, delta, dl, inf = path
+    cfg = RenderConfig(algorithm="bdpt", max_depth=LMAX - 1, rr_depth=2, mis=mis)
+    beta = 2 if mis == "power" else 1
+    f64 = jnp.float64
+
+    def rr(index, qq):
+        return 1.0 if index < cfg.rr_depth else qq
+
+    a_true = [A[i] * (rr(i - 1, q[i - 1]) if i >= 1 else 1.0) for i in range(k + 1)]
+    b_true = [B[i] * (rr(k - i - 1, q[i + 1]) if i < k else 1.0) for i in range(k + 1)]
+    ref = oracle(a_true, b_true, delta, k, dl, inf, 1, "bdpt", beta)
+    ws = []
+    for s in range(0, k + 2):
+        t = k + 1 - s
+        # light subpath y_0..y_{s-1} = x_0..x_{s-1}: A right, B right except the last two
+        lA = [A[i] for i in range(s)] or [1.0]
+        lB = [B[i] if i < s - 2 else garbage for i in range(s)] or [1.0]
+        lq = [q[i] for i in range(s)] or [1.0]
+        ld = [delta[i] for i in range(s)] or [False]
+        # camera subpath z_0..z_{t-1} = x_k..x_s: B right, A right except the last two
+        cA = [A[k - j] if j < t - 2 else garbage for j in range(t)] or [1.0]
+        cB = [B[k - j] for j in range(t)] or [1.0]
+        cq = [q[k - j] for j in range(t)] or [1.0]
+        cd = [delta[k - j] for j in range(t)] or [False]
+        lig = Pdfs(jnp.asarray(lA, f64), jnp.asarray(lB, f64), jnp.asarray(lq, f64), jnp.asarray(ld))
+        cam = Pdfs(jnp.asarray(cA, f64), jnp.asarray(cB, f64), jnp.asarray(cq, f64), jnp.asarray(cd))
+        ov = lambda i, arr: jnp.asarray(arr[i] if 0 <= i <= k else 1.0, f64)  # noqa: E731
+        w = weight(cfg, jnp.int32(s), jnp.int32(t), lig, cam, ov(s, A), ov(s + 1, A),
+                   ov(s - 1, B), ov(s - 2, B), jnp.asarray(dl), jnp.asarray(inf),
+                   jnp.log(jnp.asarray(1.0, f64)))
+        ws.append(float(w) if t >= 1 else 0.0)
+    ws = np.array(ws)
+    np.testing.assert_allclose(ws, ref, rtol=1e-9, atol=1e-12)
+    if sum(ref) > 0:
+        assert abs(ws.sum() - 1.0) < 1e-10
