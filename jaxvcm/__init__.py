@@ -2,10 +2,12 @@
 
 __version__ = "0.1.0"
 
+from ._bidir import technique_images as technique_images
 from ._config import RenderConfig as RenderConfig
 from ._loader import SceneError as SceneError
 from ._loader import load_scene as load_scene
 from ._loader import scene_from_dict as scene_from_dict
+from ._mis import mis_weight as mis_weight
 from ._render import Diagnostics as Diagnostics
 from ._render import pass_key as pass_key
 from ._render import render as render

@@ -32,8 +32,9 @@ Q_SLOTS = 256
 K = 64
 
 build = jax.jit(HG.build, static_argnames=("table_size", "dtype"))
-query = jax.jit(HG.query, static_argnames=("max_neighbours", "chunk"))
-reduce_ = jax.jit(HG.query_reduce, static_argnames=("fn", "max_candidates", "chunk"))
+query = jax.jit(HG.query, static_argnames=("max_neighbours", "chunk", "sort_queries"))
+reduce_ = jax.jit(HG.query_reduce,
+                  static_argnames=("fn", "max_candidates", "chunk", "sort_queries"))
 
 
 # ------------------------------------------------------------------------------ oracle
@@ -238,13 +239,22 @@ def test_forced_overflow_and_retry():
     check(idx, count, overflow, ref, k)
 
 
-@pytest.mark.parametrize("chunk", [32, 100, 4096], ids=lambda c: f"chunk{c}")
-def test_chunking_does_not_change_results(chunk):
-    # 256 queries in chunks of 32 (exact), 100 (padded with NaN queries) or 1 chunk
+@pytest.mark.parametrize("chunk, sort_queries", [(32, True), (100, False)],
+                         ids=lambda v: f"chunk{v}" if not isinstance(v, bool) else
+                         ("sorted" if v else "unsorted"))
+def test_chunking_and_query_order_do_not_change_results(chunk, sort_queries):
+    # 256 queries in chunks of 32 (exact) or 100 (padded with NaN queries), sorted by block
+    # internally (results returned in the caller's order) or not; the other tests run the
+    # default (one chunk of 256, sorted)
     P, V, Q, r = uniform(np.float32)
     grid = build(*P, V, r, table_size=4096)
-    idx, count, overflow = HG.query(grid, *Q, max_neighbours=K, chunk=chunk)
+    idx, count, overflow = query(grid, *Q, max_neighbours=K, chunk=chunk,
+                                 sort_queries=sort_queries)
     check(idx, count, overflow, brute(P, V, Q, r), K)
+    fn = lambda qi, pj, d2: (qi, jnp.ones_like(d2))  # noqa: E731
+    (qsum, ones), count2, _ = reduce_(grid, *Q, fn, chunk=chunk, sort_queries=sort_queries)
+    np.testing.assert_array_equal(count2, count)
+    np.testing.assert_array_equal(qsum, np.arange(Q_SLOTS) * np.asarray(count))  # qi = own index
 
 
 def test_query_radius_smaller_than_build_radius():
@@ -307,7 +317,8 @@ def test_query_reduce_gradient():
 
 
 # ------------------------------------------------------------------------ building blocks
-@pytest.mark.parametrize("key_bound", [64, 1 << 30, 1 << 62], ids=lambda b: f"bound2^{b.bit_length() - 1}")
+@pytest.mark.parametrize("key_bound", [64, 1 << 30, 1 << 62],
+                         ids=lambda b: f"bound2^{b.bit_length() - 1}")
 def test_sort_order_matches_stable_argsort(key_bound):
     # bounds 64 / 2^30 / 2^62 with 2048 keys: packed uint32 / packed uint64 / two-operand
     keys = np.random.default_rng(7).integers(0, min(key_bound, 50), 2048).astype(np.int32)
@@ -324,6 +335,41 @@ def test_precise_flag():
     f64 = build(*P, None, np.float32(1e-5), table_size=8)  # float64 grid: fine
     assert bool(ok.precise) and not bool(far.precise) and not bool(zero.precise)
     assert bool(f64.precise)
+
+
+def test_block_holds_every_neighbour_under_float32_rounding():
+    # The invariant behind exactness: for every p with |p - q| <= r the cell of p is the
+    # lower corner of q's block or the next one, per axis. Adversarial float32 grid (the
+    # coarsest rounding): q - r within a few ulps of a cell boundary (q = o + k c + r),
+    # p = q +- r within a few ulps, 40 random (r, origin), 4M pairs, k up to 2000 cells.
+    # With a cell of exactly 2r (CELL_MARGIN = SEARCH_MARGIN = 0) about 1 pair in 25000
+    # fails this (SmallVCM's floor(q/c - 0.5) likewise); the margins make it 0.
+    rng = np.random.default_rng(9)
+    f32 = np.float32
+
+    @jax.jit
+    def cells(grid, qx, px):
+        z = jnp.zeros_like(qx)
+        lo = HG._lower_corner(grid, qx, z, z, grid.radius)[0]
+        return lo, HG._cell(px, grid.origin[0], grid.inv_cell)
+
+    bad = n_inside = 0
+    for _ in range(40):
+        r, o = f32(rng.uniform(0.005, 0.2)), f32(rng.uniform(-1, 1))
+        grid = build(np.array([o, o + 1], f32), np.zeros(2, f32), np.zeros(2, f32), None, r,
+                     table_size=2, dtype=jnp.float32)
+        assert bool(grid.precise)
+        c = 1 / np.float64(grid.inv_cell)
+        k = rng.integers(0, 2000, 100_000)
+        q = (np.float64(o) + k * c + np.float64(r)).astype(f32)
+        q = q + (rng.integers(-8, 9, q.size) * np.spacing(q)).astype(f32)
+        p = (q + rng.choice([-1, 1], q.size).astype(f32) * r).astype(f32)
+        p = p + (rng.integers(-3, 4, p.size) * np.spacing(p)).astype(f32)
+        inside = np.abs(p.astype(np.float64) - q.astype(np.float64)) <= np.float64(r)
+        lo, pc = (np.asarray(a) for a in cells(grid, q, p))
+        bad += int(np.sum(inside & ((pc < lo) | (pc > lo + 1))))
+        n_inside += int(inside.sum())
+    assert n_inside > 1_000_000 and bad == 0
 
 
 # --------------------------------------------------------------------------- hypothesis
