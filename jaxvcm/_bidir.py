@@ -22,16 +22,17 @@ from ._scene import Scene
 
 
 def uses_camera_paths(algorithm: str) -> bool:
-    return algorithm in ("pt", "bdpt")
+    return algorithm in ("pt", "bdpt", "ppm")
 
 
 def uses_light_paths(algorithm: str) -> bool:
-    return algorithm in ("lt", "bdpt")
+    return algorithm in ("lt", "bdpt", "ppm")
 
 
-def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig
+def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
                      ) -> tuple[dict[tuple[int, int], Array], dict]:
-    """Weighted contribution of every (s, t) technique as its own [H, W, C] image."""
+    """Weighted contribution of every (s, t) technique as its own [H, W, C] image
+    (`ppm`: one image under the key "ppm"). `pass_index` drives the merging radius."""
     cam = scene.camera
     H, W, C = cam.height, cam.width, scene.channels
     P = H * W
@@ -52,8 +53,9 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig
         u = jax.random.uniform(kp, (D, N, SP.N_UNIFORMS), dt)
         cverts, _ = SP.trace(scene, cfg, True, s0, u, D)
         cends = CN.camera_ends(scene, o, cverts, N)
-        out.update(CN.emitter_hits(scene, cfg, cends, cverts))
-        if D >= 2:
+        if cfg.algorithm != "ppm":
+            out.update(CN.emitter_hits(scene, cfg, cends, cverts))
+        if D >= 2 and cfg.algorithm != "ppm":
             u_nee = jax.random.uniform(kn, (D - 1, N, 3), dt)
             out.update(CN.next_event(scene, cfg, cends, u_nee))
         stats["camera_vertices"] = jnp.sum(cverts.alive)
@@ -68,7 +70,13 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig
         lends = CN.light_ends(scene, e, rev0, lverts, N)
         cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)),
                              _camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))[0])
-        out.update(CN.light_tracing(scene, cfg, lends, e, cam_o))
+        if cfg.algorithm == "ppm":
+            from ._merge import pass_radius, photon_gather
+
+            r = pass_radius(cfg, scene, pass_index)
+            out["ppm"], stats["merge_overflow"] = photon_gather(scene, cfg, cends, cverts, lends, r)
+        else:
+            out.update(CN.light_tracing(scene, cfg, lends, e, cam_o))
         if cfg.algorithm == "bdpt":
             out.update(CN.connections(scene, cfg, lends, cends, e))
         stats["light_vertices"] = jnp.sum(lverts.alive)
@@ -84,8 +92,8 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig
     return images, stats
 
 
-def render_pass_bidir(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig):
-    images, stats = technique_images(scene, key, cfg)
+def render_pass_bidir(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0):
+    images, stats = technique_images(scene, key, cfg, pass_index)
     cam = scene.camera
     img = jnp.zeros((cam.height, cam.width, scene.channels), cam.origin.dtype)
     bad = jnp.zeros((), jnp.int32)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-ALGORITHMS = ("pt", "lt", "bdpt")  # later: ppm, bpm, vcm as flags of the same core
+ALGORITHMS = ("pt", "lt", "bdpt", "ppm")  # later: bpm, vcm as flags of the same core
 MIS_HEURISTICS = ("balance", "power")
 
 
@@ -20,6 +20,11 @@ class RenderConfig:
     mis:         "power" (beta = 2) or "balance" heuristic for NEE vs BSDF sampling.
     march_steps: uniform bracketing segments of the heightfield intersector.
     spp:         camera paths per pixel per pass.
+    radius:      merging radius of the first pass, as a fraction of the scene's bounding
+                 radius; pass i uses r_1 i^((alpha - 1) / 2) (progressive photon mapping).
+    alpha:       radius reduction exponent (0 < alpha < 1).
+    merge_capacity: static bound on hash-grid candidates per gather point; overflow is
+                 flagged in the diagnostics and the host re-runs the pass with more room.
     """
 
     algorithm: str = "pt"
@@ -28,6 +33,9 @@ class RenderConfig:
     mis: str = "power"
     march_steps: int = 16
     spp: int = 1
+    radius: float = 0.005
+    alpha: float = 0.75
+    merge_capacity: int = 512
 
     def __post_init__(self):
         if self.algorithm not in ALGORITHMS:
@@ -39,5 +47,12 @@ class RenderConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")
+        if not (isinstance(self.radius, (int, float)) and self.radius > 0):
+            raise ValueError(f"config.radius: must be > 0, got {self.radius!r}")
+        if not (isinstance(self.alpha, (int, float)) and 0 < self.alpha < 1):
+            raise ValueError(f"config.alpha: must lie in (0, 1), got {self.alpha!r}")
+        if not isinstance(self.merge_capacity, int) or self.merge_capacity < 1:
+            raise ValueError(f"config.merge_capacity: must be a positive integer, "
+                             f"got {self.merge_capacity!r}")
         if not isinstance(self.rr_depth, int) or self.rr_depth < 1:
             raise ValueError(f"config.rr_depth: must be a positive integer, got {self.rr_depth!r}")

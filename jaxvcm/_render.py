@@ -24,16 +24,18 @@ class Diagnostics(eqx.Module):
     light_paths: Int[Array, ""]  # light subpaths traced
     camera_vertices: Int[Array, ""]  # camera subpath vertices that existed
     light_vertices: Int[Array, ""]  # light subpath vertices that existed
+    merge_overflow: Array  # the hash-grid gather ran out of candidate capacity (re-run!)
 
 
-def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig()
-                ) -> tuple[Float[Array, "H W C"], Diagnostics]:
+def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig(),
+                pass_index=0) -> tuple[Float[Array, "H W C"], Diagnostics]:
     """One independent pass of `config.algorithm` on the one bidirectional core: an unbiased
     per-pixel radiance estimate from `config.spp` camera subpaths per pixel and/or as many
-    light subpaths. Pure and jit/vmap/grad-able (config is static)."""
+    light subpaths. Pure and jit/vmap/grad-able (config is static). `pass_index` (0-based)
+    drives the merging radius schedule of `ppm`."""
     cam = scene.camera
     N = cam.height * cam.width * config.spp
-    img, bad, stats = render_pass_bidir(scene, key, config)
+    img, bad, stats = render_pass_bidir(scene, key, config, pass_index)
     zero = jnp.zeros((), jnp.int32)
     diag = Diagnostics(
         nonfinite=bad,
@@ -41,13 +43,26 @@ def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderCo
         light_paths=jnp.asarray(N if uses_light_paths(config.algorithm) else 0, jnp.int32),
         camera_vertices=stats.get("camera_vertices", zero).astype(jnp.int32),
         light_vertices=stats.get("light_vertices", zero).astype(jnp.int32),
+        merge_overflow=stats.get("merge_overflow", jnp.zeros((), bool)),
     )
     return img, diag
 
 
 @functools.partial(jax.jit, static_argnums=(2,))
-def _render_pass_jit(scene, key, config):
-    return render_pass(scene, key, config)
+def _render_pass_jit(scene, key, config, pass_index=0):
+    return render_pass(scene, key, config, pass_index)
+
+
+def render_pass_host(scene, key, config, pass_index=0):
+    """Host-side pass: if the merging gather overflowed its static capacity, re-run the same
+    pass (same key) with twice the room (jax-md's re-allocation pattern); never truncate."""
+    import dataclasses
+
+    while True:
+        img, diag = _render_pass_jit(scene, key, config, pass_index)
+        if not bool(diag.merge_overflow):
+            return img, diag, config
+        config = dataclasses.replace(config, merge_capacity=2 * config.merge_capacity)
 
 
 def pass_key(seed: int, index: int) -> PRNGKeyArray:
@@ -84,7 +99,7 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     i = 0
     try:
         while True:
-            img, diag = _render_pass_jit(scene, pass_key(seed, i), config)
+            img, diag, config = render_pass_host(scene, pass_key(seed, i), config, i)
             img = np.asarray(img, dtype=np.float64)
             nonfinite += int(diag.nonfinite)
             acc = img if acc is None else acc + img

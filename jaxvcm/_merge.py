@@ -1,0 +1,98 @@
+"""Vertex merging, first step: progressive photon mapping (`ppm`) on the bidirectional core.
+
+Photons are the stored light-subpath vertices y_i, i >= 1, that are alive and not delta
+(surface or medium). Each camera subpath follows its delta prefix to its first non-delta
+vertex z_j and gathers there, like with like (surface photons on the same side of a
+surface, with the disk kernel 1 / (pi r^2); medium photons with the sphere kernel
+1 / (4/3 pi r^3)), over the sorted hash grid (`_hashgrid`), with the 1/N light-path
+normalisation:
+    L += beta_z * sum_photons f_z(wo_z, wo_y) beta_y / (kernel N),  segments i + j <= D.
+Emission met along the delta prefix (and at z_j itself) is added with weight 1: pure
+photon mapping has no other technique for it. Merging MIS (BPM / VCM) is future work.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _hashgrid as HG
+from . import _subpath as SP
+from . import _vec as V
+from ._config import RenderConfig
+from ._connect import PathEnds
+from ._scene import Scene
+from ._vec import Vec3
+
+
+def pass_radius(cfg: RenderConfig, scene: Scene, pass_index):
+    """r_i = r_1 i^((alpha - 1) / 2), i = pass_index + 1 (Knaus & Zwicker 2011); r_1 is
+    `cfg.radius` times the scene's bounding radius."""
+    from ._scene import bounding_sphere
+
+    _, rb = bounding_sphere(scene)
+    i = jnp.asarray(pass_index, rb.dtype) + 1.0
+    return jax.lax.stop_gradient(cfg.radius * rb * i ** ((cfg.alpha - 1.0) / 2.0))
+
+
+def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Vertex,
+                  lig: PathEnds, radius):
+    """PPM estimate per camera lane [N, C] and the grid's overflow flag."""
+    N = cam.A.shape[1]
+    D = cfg.max_depth
+    dt = cam.A.dtype
+    C = scene.channels
+    # ---- photons: y_1 .. y_{D-1} flattened ----
+    idx = np.arange(1, lig.A.shape[0])
+    flat = lambda a: a[idx].reshape((-1,) + a.shape[2:])  # noqa: E731
+    pp = Vec3(*(flat(c) for c in lig.p))
+    pn = Vec3(*(flat(c) for c in lig.n))
+    pwo = Vec3(*(flat(c) for c in lig.wo))
+    pbeta = flat(lig.beta)
+    pmed = flat(lig.medium)
+    pdepth = jnp.repeat(jnp.asarray(idx, jnp.int32), N)
+    pvalid = flat(lig.alive) & ~flat(lig.delta)
+    M = pp.x.shape[0]
+    table = 1 << max(4, int(math.ceil(math.log2(max(M, 16)))))
+    grid = HG.build(pp.x, pp.y, pp.z, pvalid, radius, table_size=table, dtype=dt)
+
+    # ---- gather vertex: the first non-delta camera vertex ----
+    nd = cam.alive[1:] & ~cam.delta[1:]  # [D, N] for z_1..z_D
+    has = jnp.any(nd, axis=0)
+    j = jnp.argmax(nd, axis=0).astype(jnp.int32) + 1  # index into cam (z_j)
+    lane = jnp.arange(N)
+    g = lambda a: a[j, lane]  # noqa: E731
+    zp = Vec3(*(g(c) for c in cam.p))
+    zn = Vec3(*(g(c) for c in cam.n))
+    zwo = Vec3(*(g(c) for c in cam.wo))
+    zbeta, zmed, zkind, zmat = g(cam.beta), g(cam.medium), g(cam.kind), g(cam.mat)
+
+    def kernel(qi, pj, d2):
+        same = zmed[qi] == pmed[pj]
+        facing = zmed[qi] | (V.dot(Vec3(zn.x[qi], zn.y[qi], zn.z[qi]),
+                                   Vec3(pn.x[pj], pn.y[pj], pn.z[pj])) > 0)
+        wo_p = Vec3(pwo.x[pj], pwo.y[pj], pwo.z[pj])
+        wo_z = Vec3(zwo.x[qi], zwo.y[qi], zwo.z[qi])
+        nz = Vec3(zn.x[qi], zn.y[qi], zn.z[qi])
+        f = jax.vmap(lambda k_, m_, a, b, n_: SP.eval_f(scene, k_, m_, a, b, n_))(
+            zkind[qi], zmat[qi], wo_z, wo_p, nz)
+        cosp = jnp.where(zmed[qi], 1.0, jnp.abs(V.dot(nz, wo_p)))
+        f = f / jnp.maximum(cosp, 1e-8)[:, None]  # f without the cosine (density does it)
+        depth_ok = pdepth[pj] + j[qi] <= D
+        ok = same & facing & depth_ok
+        return jnp.where(ok[:, None], f * pbeta[pj], 0.0)
+
+    total, count, overflow = HG.query_reduce(grid, zp.x, zp.y, zp.z, kernel, radius,
+                                             max_candidates=cfg.merge_capacity)
+    area = jnp.where(zmed, 4.0 / 3.0 * jnp.pi * radius**3, jnp.pi * radius**2)
+    est = zbeta * total / (area * N)[:, None]
+    est = jnp.where(has[:, None], est, 0.0)
+    # ---- emission along the delta prefix and at the gather vertex (weight 1) ----
+    jj = jnp.arange(1, D + 1, dtype=jnp.int32)[:, None]
+    prefix = jj <= jnp.where(has, j, D)[None]
+    Le = jnp.sum(jnp.where((prefix & cverts.alive)[..., None], cam.beta[1:] * cverts.Le, 0.0),
+                 axis=0)
+    return est + Le, overflow
