@@ -46,22 +46,33 @@ def technique_mask(algorithm: str, k: Int[Array, ""], L: int) -> Bool[Array, "L1
         return (j == 0) | ((j == 1) & (k >= 2))
     if algorithm == "lt":
         return j == k
-    if algorithm == "bdpt":
+    if algorithm in ("bdpt", "vcm"):
         return j <= k
+    if algorithm in ("ppm", "bpm"):  # emitter hits only (ppm: further restricted below)
+        return j == 0
     raise ValueError(f"algorithm: no connection techniques for {algorithm!r}")
+
+
+MERGING = ("ppm", "bpm", "vcm")
 
 
 def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L"],
                k: Int[Array, ""], s: Int[Array, ""], delta_light: Bool[Array, ""],
                infinite_light: Bool[Array, ""], log_n_lt: Float[Array, ""],
-               algorithm: str = "bdpt", beta: float = 1.0
-               ) -> Float[Array, ""]:
+               algorithm: str = "bdpt", beta: float = 1.0, log_eta: Float[Array, "L"] | None = None,
+               merge=False) -> Float[Array, ""]:
     """Weight of technique s for the path x_0..x_k (entries i > k are ignored).
 
     a, b: per-vertex light- and camera-side pdfs (delta-remapped, RR included);
     delta: per-vertex delta flag; delta_light: x_0 is on a delta light (the sun);
     infinite_light: x_0 is at infinity (sun, sky): it cannot be joined to the pinhole (k = 1);
     log_n_lt: log of the light-tracing multiplicity N_light; beta: 1 balance, 2 power.
+    log_eta: per vertex log(kernel N): log(pi r^2 N) on surfaces, log(4/3 pi r^3 N) in the
+    medium (merging algorithms only); merge: the technique is merging at vertex s
+    (p_VM,s = a_s p_VC,s kernel, multiplicity N: Georgiev et al. 2012, tech. rep. eq. 12).
+    Merging at x_i needs 1 <= i <= k-1 (not at the light's first vertex, not at the
+    camera) and x_i non-delta; `ppm` keeps only the first non-delta vertex seen from the
+    camera (and emitter hits through a purely delta camera prefix).
     """
     L = a.shape[0]
     dt = a.dtype
@@ -89,9 +100,27 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
                                ~jnp.where(j == 1, False, left_delta) & ~jnp.where(j == k, False, dpad)))
     conn = conn & ~((j == 1) & (k == 1) & infinite_light)
     valid = conn & positive & (j <= k + 1) & technique_mask(algorithm, k, L)
+    # non-delta interior vertices strictly between x_i and the camera (for ppm)
+    nd = (~delta & in_path & (i >= 1) & (i <= k - 1)).astype(jnp.int32)
+    nd_after = jnp.concatenate([jnp.cumsum(nd[::-1])[::-1][1:], jnp.zeros((1,), jnp.int32)])
+    if algorithm == "ppm":
+        # emitter hits only through a purely delta camera prefix
+        valid = valid & (jnp.sum(nd) == 0)
     log_n = jnp.where(j == k, log_n_lt, 0.0).astype(dt)
-    e = beta * (c - c[s] + log_n - log_n[s])  # (n_j p_j / n_s p_s)^beta in log space
-    e = jnp.where(valid, e, -jnp.inf)
-    w = jnp.exp(-jax.nn.logsumexp(e))
-    ok = valid[s]
-    return jnp.where(ok, w, 0.0)
+    lvc = c + log_n  # log(n_j p_j / p_b), p_b = prod b_i: j = 0..L
+    own = lvc[s]
+    own_valid = valid[s]
+    if algorithm in MERGING:
+        lm = c[:-1] + la + log_eta  # log(n_VM p_VM,i / p_b), i = 0..L-1
+        vm = (in_path & (i >= 1) & (i <= k - 1) & ~delta & positive[:-1] & pos_a)
+        if algorithm == "ppm":
+            vm = vm & (nd_after == 0)
+        own = jnp.where(merge, lm[jnp.minimum(s, L - 1)], own)
+        own_valid = jnp.where(merge, vm[jnp.minimum(s, L - 1)], own_valid)
+    # w = (n_s p_s)^beta / sum_T (n_T p_T)^beta: differences to the own technique first
+    # (small numbers), then logsumexp
+    terms = jnp.where(valid, beta * (lvc - own), -jnp.inf)
+    if algorithm in MERGING:
+        terms = jnp.concatenate([terms, jnp.where(vm, beta * (lm - own), -jnp.inf)])
+    w = jnp.exp(-jax.nn.logsumexp(terms))
+    return jnp.where(own_valid, w, 0.0)

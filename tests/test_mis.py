@@ -211,3 +211,97 @@ def test_renderer_assembly_from_subpaths_sums_to_one(path, garbage, mis):
     np.testing.assert_allclose(ws, ref, rtol=1e-9, atol=1e-12)
     if sum(ref) > 0:
         assert abs(ws.sum() - 1.0) < 1e-10
+
+
+# ---------------------------------------------------------------- merging (VM) techniques
+def oracle_vcm(a, b, delta, k, delta_light, infinite_light, n_lt, eta, algorithm, beta):
+    """(VC weights j = 0..k+1, VM weights i = 0..k) by exact enumeration:
+    n_VM p_VM,i = eta_i a_i p_VC,i (eta_i = kernel area/volume times N), merging at
+    1 <= i <= k-1 on non-delta vertices (ppm: the first non-delta vertex from the camera)."""
+    base = oracle_terms(a, b, delta, k, delta_light, infinite_light, n_lt, algorithm)
+
+    def p(j):
+        out = Fraction(1)
+        for i in range(k + 1):
+            out *= Fraction(a[i]) if i < j else Fraction(b[i])
+        return out
+
+    nd = [i for i in range(1, k) if not delta[i]]
+    vm = []
+    for i in range(k + 1):
+        ok = 1 <= i <= k - 1 and not delta[i] and a[i] > 0 and p(i) > 0
+        if algorithm == "ppm":
+            ok = ok and all(delta[m] for m in range(i + 1, k))
+        vm.append(Fraction(eta[i]) * Fraction(a[i]) * p(i) if ok else Fraction(0))
+    if algorithm == "ppm" and nd:
+        base = [Fraction(0)] * len(base)
+    tv = [x ** beta for x in base]
+    tm = [x ** beta for x in vm]
+    total = sum(tv) + sum(tm)
+    f = (lambda x: float(x / total)) if total > 0 else (lambda x: 0.0)
+    return [f(x) for x in tv], [f(x) for x in tm]
+
+
+def oracle_terms(a, b, delta, k, delta_light, infinite_light, n_lt, algorithm):
+    """n_j p_j of the valid connection techniques (0 for invalid), j = 0..k+1."""
+    def p(j):
+        out = Fraction(1)
+        for i in range(k + 1):
+            out *= Fraction(a[i]) if i < j else Fraction(b[i])
+        return out
+
+    out = []
+    for j in range(k + 2):
+        if algorithm in ("ppm", "bpm"):
+            ok = j == 0 and not delta_light
+        else:
+            if j == 0:
+                ok = not delta_light
+            elif j == k + 1:
+                ok = False
+            else:
+                ok = not (j > 1 and delta[j - 1]) and not (j < k and delta[j])
+                ok = ok and not (j == 1 and k == 1 and infinite_light)
+        ok = ok and p(j) > 0
+        out.append((Fraction(n_lt) if j == k else Fraction(1)) * p(j) if ok else Fraction(0))
+    return out
+
+
+@jax.jit
+def _vcm_weights(A, B, Dl, k, dl, inf, log_n, beta, log_eta):
+    out = {}
+    for alg in ("ppm", "bpm", "vcm"):
+        f = lambda s, m: mis_weight(A, B, Dl, k, s, dl, inf, log_n, alg, beta, log_eta, m)  # noqa: E731
+        js = jnp.arange(LMAX + 1)
+        out[alg] = (jax.vmap(lambda s: f(s, False))(js), jax.vmap(lambda s: f(s, True))(js[:LMAX]))
+    return out
+
+
+@pytest.mark.parametrize("dtype,tol", [("float32", 1e-5), ("float64", 1e-10)])
+@pytest.mark.parametrize("algorithm", ["vcm", "bpm", "ppm"])
+@pytest.mark.parametrize("beta", [1, 2], ids=["balance", "power"])
+@settings(max_examples=40, deadline=None)
+@given(path=paths(-8.0, 8.0), log_eta=st.floats(-12.0, 12.0))
+def test_vcm_weights_sum_to_one_and_match_oracle(path, log_eta, dtype, tol, algorithm, beta):
+    # tiny and huge merging radii: eta = pi r^2 N from 1e-12 to 1e12
+    a, b, delta, k, dl, inf, n_lt = path
+    dt = getattr(jnp, dtype)
+    eta = [10.0 ** log_eta * (1.7 if i % 2 else 1.0) for i in range(k + 1)]  # surface / medium
+    pad = LMAX - len(a)
+    A = jnp.asarray(list(a) + [1.0] * pad, dt)
+    B = jnp.asarray(list(b) + [1.0] * pad, dt)
+    Dl = jnp.asarray(list(delta) + [False] * pad)
+    le = jnp.log(jnp.asarray(eta + [1.0] * pad, dt))
+    vc, vm = _vcm_weights(A, B, Dl, jnp.int32(k), jnp.asarray(dl), jnp.asarray(inf),
+                          jnp.log(jnp.asarray(n_lt, dt)), jnp.asarray(beta, dt), le)[algorithm]
+    vc = np.asarray(vc, np.float64)[: k + 2]
+    vm = np.asarray(vm, np.float64)[: k + 1]
+    rvc, rvm = oracle_vcm(a, b, delta, k, dl, inf, n_lt, eta, algorithm, beta)
+    assert np.all(np.isfinite(vc)) and np.all(np.isfinite(vm))
+    for got, ref in ((vc, rvc), (vm, rvm)):
+        for g, r in zip(got, ref):
+            if r == 0.0:
+                assert g == 0.0
+        np.testing.assert_allclose(got, ref, rtol=50 * tol, atol=tol)
+    if sum(rvc) + sum(rvm) > 0:
+        assert abs(vc.sum() + vm.sum() - 1.0) <= tol
