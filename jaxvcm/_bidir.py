@@ -1,10 +1,13 @@
-"""A pass of the bidirectional core: camera subpaths, light subpaths, and the connection
-techniques the algorithm enables (pt: s = 0, 1; lt: t = 1; bdpt: all), each weighted by
-explicit-sum MIS over the techniques that algorithm has.
+"""A pass of the bidirectional core: camera subpaths, light subpaths, and the techniques
+the algorithm enables (pt: s = 0, 1; lt: t = 1; bdpt: all connections; ppm: photon
+gathering at the first non-delta camera vertex; bpm: merging at every camera vertex (+
+emitter hits); vcm: all connections and all merges), each weighted by explicit-sum MIS
+over the techniques that algorithm has.
 
 Stages, in a straight line:
     camera rays -> camera subpaths -> [s = 0] emitter hits -> [s = 1] next-event estimation
     light emission -> light subpaths -> [t = 1] light tracing splats -> [s, t >= 2] connections
+    -> [merging] hash grid over light vertices, gather at camera vertices (ppm / bpm / vcm)
 """
 
 from __future__ import annotations
@@ -22,17 +25,18 @@ from ._scene import Scene
 
 
 def uses_camera_paths(algorithm: str) -> bool:
-    return algorithm in ("pt", "bdpt", "ppm")
+    return algorithm in ("pt", "bdpt", "ppm", "bpm", "vcm")
 
 
 def uses_light_paths(algorithm: str) -> bool:
-    return algorithm in ("lt", "bdpt", "ppm")
+    return algorithm in ("lt", "bdpt", "ppm", "bpm", "vcm")
 
 
 def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
                      ) -> tuple[dict[tuple[int, int], Array], dict]:
-    """Weighted contribution of every (s, t) technique as its own [H, W, C] image
-    (`ppm`: one image under the key "ppm"). `pass_index` drives the merging radius."""
+    """Weighted contribution of every (s, t) technique as its own [H, W, C] image; merging
+    at camera vertex z_j under the key (-1, j) (bpm, vcm), and `ppm`'s gather under "ppm".
+    `pass_index` drives the merging radius."""
     cam = scene.camera
     H, W, C = cam.height, cam.width, scene.channels
     P = H * W
@@ -42,6 +46,14 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
     kc, kp, kn, ke, kl = jax.random.split(key, 5)
     out: dict = {}
     stats = {}
+    merging = cfg.algorithm in ("bpm", "vcm")
+    if merging:
+        from ._merge import pass_radius
+
+        radius = pass_radius(cfg, scene, pass_index)
+        etas = CN.log_etas(radius, N, dt)
+    else:
+        etas = (0.0, 0.0)
 
     # ---- camera subpaths ----
     pixel = jnp.arange(N, dtype=jnp.int32) % P
@@ -54,10 +66,10 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
         cverts, _ = SP.trace(scene, cfg, True, s0, u, D)
         cends = CN.camera_ends(scene, o, cverts, N)
         if cfg.algorithm != "ppm":
-            out.update(CN.emitter_hits(scene, cfg, cends, cverts))
-        if D >= 2 and cfg.algorithm != "ppm":
+            out.update(CN.emitter_hits(scene, cfg, cends, cverts, etas))
+        if D >= 2 and cfg.algorithm in ("pt", "bdpt", "vcm"):
             u_nee = jax.random.uniform(kn, (D - 1, N, 3), dt)
-            out.update(CN.next_event(scene, cfg, cends, u_nee))
+            out.update(CN.next_event(scene, cfg, cends, u_nee, etas))
         stats["camera_vertices"] = jnp.sum(cverts.alive)
     # ---- light subpaths ----
     if uses_light_paths(cfg.algorithm):
@@ -75,10 +87,16 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
 
             r = pass_radius(cfg, scene, pass_index)
             out["ppm"], stats["merge_overflow"] = photon_gather(scene, cfg, cends, cverts, lends, r)
-        else:
-            out.update(CN.light_tracing(scene, cfg, lends, e, cam_o))
-        if cfg.algorithm == "bdpt":
-            out.update(CN.connections(scene, cfg, lends, cends, e))
+        elif cfg.algorithm in ("lt", "bdpt", "vcm"):
+            out.update(CN.light_tracing(scene, cfg, lends, e, cam_o, etas))
+        if cfg.algorithm in ("bdpt", "vcm"):
+            out.update(CN.connections(scene, cfg, lends, cends, e, etas))
+        if merging and D >= 2:
+            from ._merge import vertex_merging
+
+            vm, stats["merge_overflow"] = vertex_merging(scene, cfg, cends, lends, e, radius)
+            for j in range(vm.shape[0]):
+                out[(-1, j + 1)] = vm[j]  # key (-1, j): merging at camera vertex z_j
         stats["light_vertices"] = jnp.sum(lverts.alive)
     # ---- film ----
     images = {}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-ALGORITHMS = ("pt", "lt", "bdpt", "ppm")  # later: bpm, vcm as flags of the same core
+ALGORITHMS = ("pt", "lt", "bdpt", "ppm", "bpm", "vcm")  # flags of the one core
 MIS_HEURISTICS = ("balance", "power")
 
 

@@ -66,10 +66,11 @@ class Pdfs(NamedTuple):
     B: Array
     q: Array
     delta: Array
+    medium: Array
 
 
 def _pdfs(e: PathEnds) -> Pdfs:
-    return Pdfs(e.A, e.B, e.q, e.delta)
+    return Pdfs(e.A, e.B, e.q, e.delta, e.medium)
 
 
 def _stack0(v0, rest):
@@ -129,6 +130,7 @@ def path_pdfs(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_
         return jnp.where(from_l, fl[li], fc[ci])
 
     A, B, q, delta = g(lig.A, cam.A), g(lig.B, cam.B), g(lig.q, cam.q), g(lig.delta, cam.delta)
+    medium = g(lig.medium, cam.medium)
     A = jnp.where(i == s, A_s, A)
     A = jnp.where((i == s + 1) & (t >= 3), A_s1, A)
     B = jnp.where((i == s - 1) & (s >= 1), B_s1, B)
@@ -137,32 +139,49 @@ def path_pdfs(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_
     q_next = jnp.concatenate([q[1:], jnp.ones((1,), q.dtype)])
     a = A * jnp.where(i >= 1, SP.rr(i - 1, q_prev, cfg), 1.0)
     b = B * jnp.where(i < k, SP.rr(k - i - 1, q_next, cfg), 1.0)
-    return a, b, delta & (i <= k)
+    return a, b, delta & (i <= k), medium
+
+
+def log_etas(radius, n_paths, dtype):
+    """log of the merging multiplicity times kernel size: (surface pi r^2 N, medium
+    4/3 pi r^3 N); zeros when there is no merging."""
+    if radius is None:
+        z = jnp.zeros((), dtype)
+        return z, z
+    ln = jnp.log(jnp.asarray(n_paths, dtype))
+    r = jnp.asarray(radius, dtype)
+    return ln + jnp.log(jnp.pi * r * r), ln + jnp.log(4.0 / 3.0 * jnp.pi * r * r * r)
 
 
 def weight(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_s2,
-           delta_light, infinite_light, log_n_lt):
-    """MIS weight of technique (s, t) for one path (all arguments per lane)."""
-    a, b, delta = path_pdfs(cfg, s, t, lig, cam, A_s, A_s1, B_s1, B_s2)
+           delta_light, infinite_light, log_n_lt, log_eta_surf=0.0, log_eta_med=0.0,
+           merge=False):
+    """MIS weight of technique (s, t) for one path (all arguments per lane); with `merge`
+    the technique is merging at x_s (camera vertex z_{t-1} with the photon y_s)."""
+    a, b, delta, medium = path_pdfs(cfg, s, t, lig, cam, A_s, A_s1, B_s1, B_s2)
     beta = 2.0 if cfg.mis == "power" else 1.0
     k = s + t - 1
+    log_eta = jnp.where(medium, log_eta_med, log_eta_surf)
     w = _mis.mis_weight(jax.lax.stop_gradient(a), jax.lax.stop_gradient(b), delta, k, s,
-                        delta_light, infinite_light, log_n_lt, cfg.algorithm, beta)
+                        delta_light, infinite_light, log_n_lt, cfg.algorithm, beta,
+                        jax.lax.stop_gradient(log_eta), merge)
     return jax.lax.stop_gradient(w)
 
 
 def family_weights(cfg, s, t, lig: Pdfs, lig_axis, cam: Pdfs, cam_axis, A_s, A_s1, B_s1, B_s2,
-                   delta_light, infinite_light, log_n_lt):
-    """Weights [J, N] for a family of techniques: s, t [J]; overrides [J, N]; subpath pdfs
-    with their lane axis given (an axis spec of (outer J, inner N) for each)."""
+                   delta_light, infinite_light, log_n_lt, etas=(0.0, 0.0)):
+    """Weights [J, N] for a family of connection techniques: s, t [J]; overrides [J, N];
+    subpath pdfs with their lane axis given (an axis spec of (outer J, inner N) for each);
+    etas: `log_etas(radius, N)` for algorithms with merging."""
     inner = jax.vmap(weight, in_axes=(None, None, None, lig_axis[1], cam_axis[1], 0, 0, 0, 0,
-                                      0, 0, None))
+                                      0, 0, None, None, None))
     outer = jax.vmap(inner, in_axes=(None, 0, 0, lig_axis[0], cam_axis[0], 0, 0, 0, 0, 0, 0,
-                                     None))
+                                     None, None, None))
     J, N = A_s.shape
     bc = lambda x: jnp.broadcast_to(x, (J, N))  # noqa: E731
     return outer(cfg, jnp.asarray(s, jnp.int32), jnp.asarray(t, jnp.int32), lig, cam, A_s,
-                 bc(A_s1), bc(B_s1), bc(B_s2), bc(delta_light), bc(infinite_light), log_n_lt)
+                 bc(A_s1), bc(B_s1), bc(B_s2), bc(delta_light), bc(infinite_light), log_n_lt,
+                 etas[0], etas[1])
 
 
 # ---------------------------------------------------------------- geometry helpers
@@ -215,7 +234,8 @@ def _sky_id(scene: Scene) -> int:
 
 
 # ---------------------------------------------------------------- s = 0
-def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: SP.Vertex):
+def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: SP.Vertex,
+                 etas=(0.0, 0.0)):
     """z_j on an emitter or at infinity (sky), j = 1..D: technique (0, j + 1)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -235,14 +255,14 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: SP.Verte
     one = jnp.ones((D, N), dt)
     w = family_weights(cfg, np.zeros(D), js + 1, _pdfs(cam), (None, 1), _pdfs(cam), (None, 1),
                        A_s, A_s1, one, one, jnp.zeros((), bool), esc,
-                       jnp.log(jnp.asarray(N, dt)))
+                       jnp.log(jnp.asarray(N, dt)), etas)
     ok = z.alive & jnp.any(Le > 0, axis=-1)
     contrib = jnp.where(ok[..., None], z.beta * Le * w[..., None], 0.0)
     return {(0, int(j) + 1): contrib[i] for i, j in enumerate(js)}
 
 
 # ---------------------------------------------------------------- s = 1
-def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee):
+def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0, 0.0)):
     """NEE from z_j, j = 1..D-1: technique (1, j + 1)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -280,10 +300,11 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee):
                    * SP.dist_pdf(scene.water, wseg, False, ls.dist))
     # the fresh light sample as a one-vertex light subpath
     J = len(js)
-    lig = Pdfs(A0[..., None], B0[..., None], jnp.ones((J, N, 1), dt), jnp.zeros((J, N, 1), bool))
+    f1 = jnp.zeros((J, N, 1), bool)
+    lig = Pdfs(A0[..., None], B0[..., None], jnp.ones((J, N, 1), dt), f1, f1)
     one = jnp.ones((J, N), dt)
     w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), _pdfs(cam), (None, 1),
-                       A_s, A_s1, B0, one, is_delta_l, inf, jnp.log(jnp.asarray(N, dt)))
+                       A_s, A_s1, B0, one, is_delta_l, inf, jnp.log(jnp.asarray(N, dt)), etas)
     ok = z.alive & ~z.delta & ls.valid & vis
     contrib = jnp.where(ok[..., None], contrib * w[..., None], 0.0)
     return {(1, int(j) + 1): contrib[i] for i, j in enumerate(js)}
@@ -314,7 +335,8 @@ def camera_importance(scene: Scene, w: Vec3):
     return iy * W + ix, jnp.where(inside, imp, 0.0), inside
 
 
-def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: Lt.Emission, cam_o: Vec3):
+def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: Lt.Emission, cam_o: Vec3,
+                  etas=(0.0, 0.0)):
     """y_i -> pinhole, i = 0..D-1: technique (i + 1, 1), splatted: {(s, 1): (pixel, value)}."""
     N = lig.A.shape[1]
     D = cfg.max_depth
@@ -345,17 +367,18 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: Lt.Emission
     B_s2 = jnp.where(((idx - 1) == 0)[:, None] & e.infinite[None], pr, b2)
     one = jnp.ones((J, N), dt)
     N0 = jnp.ones((1, N), dt)
-    camp = Pdfs(N0, N0, N0, jnp.zeros((1, N), bool))  # z_0 alone
+    camp = Pdfs(N0, N0, N0, jnp.zeros((1, N), bool), jnp.zeros((1, N), bool))  # z_0 alone
     wgt = family_weights(cfg, idx + 1, np.ones(J), _pdfs(lig), (None, 1), camp, (None, 1),
                          one, one, B_s1, B_s2, e.delta[None], e.infinite[None],
-                         jnp.log(jnp.asarray(N, dt)))
+                         jnp.log(jnp.asarray(N, dt)), etas)
     good = ok & vis & inside
     val = jnp.where(good[..., None], contrib * wgt[..., None], 0.0)
     return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
 
 
 # ---------------------------------------------------------------- s, t >= 2
-def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e: Lt.Emission):
+def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e: Lt.Emission,
+                etas=(0.0, 0.0)):
     """z_{t-1} joined to y_{s-1} for s, t >= 2, s + t - 1 <= D."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -386,7 +409,8 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     B_s2 = jnp.where(((ss - 2) == 0)[:, None] & e.infinite[None], p4, b)
     J = len(pairs)
     wgt = family_weights(cfg, ss, ts, _pdfs(lig), (None, 1), _pdfs(cam), (None, 1), A_s, A_s1,
-                         B_s1, B_s2, e.delta[None], e.infinite[None], jnp.log(jnp.asarray(N, dt)))
+                         B_s1, B_s2, e.delta[None], e.infinite[None], jnp.log(jnp.asarray(N, dt)),
+                         etas)
     ok = y.alive & ~y.delta & z.alive & ~z.delta & vis
     val = jnp.where(ok[..., None], contrib * wgt[..., None], 0.0)
     return {pr: val[i] for i, pr in enumerate(pairs)}

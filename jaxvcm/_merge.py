@@ -96,3 +96,88 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
     Le = jnp.sum(jnp.where((prefix & cverts.alive)[..., None], cam.beta[1:] * cverts.Le, 0.0),
                  axis=0)
     return est + Le, overflow
+
+
+# ---------------------------------------------------------------- bpm / vcm: merging with MIS
+def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds, e, radius):
+    """Merging at every non-delta camera vertex z_j (j = 1..D-1) with every photon y_i
+    (i >= 1) within `radius`, like with like, weighted by the explicit-sum MIS over all
+    connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
+        L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
+    Returns ([N, C] per camera lane, overflow)."""
+    from . import _connect as CN
+
+    N = cam.A.shape[1]
+    D = cfg.max_depth
+    dt = cam.A.dtype
+    etas = CN.log_etas(radius, N, dt)
+    log_n = jnp.log(jnp.asarray(N, dt))
+    # ---- photons y_1..y_{D-1}, gather points z_1..z_{D-1}, flattened (index = row * N + lane)
+    li = np.arange(1, lig.A.shape[0])
+    ci = np.arange(1, D)
+    flat = lambda a, idx: a[idx].reshape((-1,) + a.shape[2:])  # noqa: E731
+    pvalid = flat(lig.alive, li) & ~flat(lig.delta, li)
+    py = Vec3(*(flat(c, li) for c in lig.p))
+    table = 1 << max(4, int(math.ceil(math.log2(max(py.x.shape[0], 16)))))
+    grid = HG.build(py.x, py.y, py.z, pvalid, radius, table_size=table, dtype=dt)
+    zq = Vec3(*(flat(c, ci) for c in cam.p))
+    zvalid = flat(cam.alive, ci) & ~flat(cam.delta, ci)
+    # queries of dead / delta camera vertices are moved far away (no neighbours)
+    far = jnp.asarray(1e30, dt)
+    zq = Vec3(*(jnp.where(zvalid, c, far) for c in zq))
+    P = _pdfs_of(lig)
+    Cp = _pdfs_of(cam)
+    bp = lambda k_, m_, a, b, n_: SP.bsdf_pdf(scene, k_, m_, None, a, b, n_)  # noqa: E731
+
+    def at(ends, row, lane):
+        return jax.tree.map(lambda a: a[row, lane], ends)
+
+    def kernel(qi, pj, d2):
+        jq = (qi // N + 1).astype(jnp.int32)
+        lc = qi % N
+        ip = (pj // N + 1).astype(jnp.int32)
+        ll = pj % N
+        z = at(cam, jq, lc)
+        zp = at(cam, jq - 1, lc)
+        y = at(lig, ip, ll)
+        yp = at(lig, ip - 1, ll)
+        same = (z.medium == y.medium) & (z.medium | (V.dot(z.n, y.n) > 0))
+        ok = same & (ip + jq <= D) & z.alive & ~z.delta & y.alive & ~y.delta
+        fz = jax.vmap(lambda k_, m_, a, b, n_: SP.eval_f(scene, k_, m_, a, b, n_))(
+            z.kind, z.mat, z.wo, y.wo, z.n)
+        cz = jnp.where(z.medium, 1.0, jnp.abs(V.dot(z.n, y.wo)))
+        fz = fz / jnp.maximum(cz, 1e-8)[:, None]
+        # ---- the pdfs that change at the merge (x_s = z, photon y_s = y) ----
+        pa1 = jax.vmap(bp)(z.kind, z.mat, y.wo, z.wo, z.n)  # z_{j-1} through z, from y_{i-1}
+        dz = zp.p - z.p
+        lz = V.length(dz)
+        A_s1 = pa1 * SP.to_area(1.0, zp.medium, zp.n, dz / jnp.maximum(lz, 1e-30), lz,
+                                z.seg_water, scene.water)
+        pb1 = jax.vmap(bp)(z.kind, z.mat, z.wo, y.wo, z.n)  # y_{i-1} through z, from z_{j-1}
+        dy = yp.p - z.p
+        ly = V.length(dy)
+        b1 = pb1 * SP.to_area(1.0, yp.medium, yp.n, dy / jnp.maximum(ly, 1e-30), ly,
+                              y.seg_water, scene.water)
+        B_s1 = jnp.where((ip == 1) & e.infinite[ll], pb1, b1)
+        B_s2 = P.B[jnp.maximum(ip - 2, 0), ll]
+        lig_l = jax.tree.map(lambda a: a[:, ll].T, P)
+        cam_l = jax.tree.map(lambda a: a[:, lc].T, Cp)
+        w = jax.vmap(CN.weight, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None, None,
+                                         None))(
+            cfg, ip, jq + 1, lig_l, cam_l, y.A, A_s1, B_s1, B_s2, e.delta[ll], e.infinite[ll],
+            log_n, etas[0], etas[1], True)
+        return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
+
+    total, count, overflow = HG.query_reduce(grid, zq.x, zq.y, zq.z, kernel, radius,
+                                             max_candidates=cfg.merge_capacity)
+    zmed = flat(cam.medium, ci)
+    area = jnp.where(zmed, 4.0 / 3.0 * jnp.pi * radius**3, jnp.pi * radius**2)
+    est = flat(cam.beta, ci) * total / (area * N)[:, None]
+    est = jnp.where(zvalid[:, None], est, 0.0).reshape(len(ci), N, -1)
+    return est, overflow
+
+
+def _pdfs_of(e: PathEnds):
+    from ._connect import _pdfs
+
+    return _pdfs(e)

@@ -200,8 +200,10 @@ def test_renderer_assembly_from_subpaths_sums_to_one(path, garbage, mis):
         cB = [B[k - j] for j in range(t)] or [1.0]
         cq = [q[k - j] for j in range(t)] or [1.0]
         cd = [delta[k - j] for j in range(t)] or [False]
-        lig = Pdfs(jnp.asarray(lA, f64), jnp.asarray(lB, f64), jnp.asarray(lq, f64), jnp.asarray(ld))
-        cam = Pdfs(jnp.asarray(cA, f64), jnp.asarray(cB, f64), jnp.asarray(cq, f64), jnp.asarray(cd))
+        lig = Pdfs(jnp.asarray(lA, f64), jnp.asarray(lB, f64), jnp.asarray(lq, f64), jnp.asarray(ld),
+                   jnp.zeros(len(ld), bool))
+        cam = Pdfs(jnp.asarray(cA, f64), jnp.asarray(cB, f64), jnp.asarray(cq, f64), jnp.asarray(cd),
+                   jnp.zeros(len(cd), bool))
         ov = lambda i, arr: jnp.asarray(arr[i] if 0 <= i <= k else 1.0, f64)  # noqa: E731
         w = weight(cfg, jnp.int32(s), jnp.int32(t), lig, cam, ov(s, A), ov(s + 1, A),
                    ov(s - 1, B), ov(s - 2, B), jnp.asarray(dl), jnp.asarray(inf),
