@@ -208,12 +208,21 @@ def _ready(x):
 
 
 # ----------------------------------------------------------------------------- rendering
+def _pass(scene, key, config, index):
+    """One pass as `jaxvcm render` does it: the pass index drives the merging radius, and
+    a merging overflow re-runs the pass with more room (never a truncated estimate)."""
+    from ._render import render_pass_host
+
+    img, diag, _ = render_pass_host(scene, key, config, index)
+    return img, diag
+
+
 def _warm_up(scene, config, seed: int) -> float:
     """Compile (or load from the persistent cache) and run one pass; returns its seconds."""
-    from ._render import _render_pass_jit, pass_key
+    from ._render import pass_key
 
     t0 = time.perf_counter()
-    _ready(_render_pass_jit(scene, pass_key(seed, 0), config))
+    _ready(_pass(scene, pass_key(seed, 0), config, 0))
     return time.perf_counter() - t0
 
 
@@ -221,7 +230,7 @@ def _budget_run(scene, config, seed: int, budgets) -> list[dict]:
     """One progressive render sampled at each budget: for budget B, the image after the
     last pass completed at or before B seconds (the first pass if even that took longer).
     Returns one dict per budget with passes, seconds, path counts and the image."""
-    from ._render import _render_pass_jit, pass_key
+    from ._render import pass_key
 
     budgets = sorted(budgets)
     out: list[dict] = []
@@ -233,7 +242,7 @@ def _budget_run(scene, config, seed: int, budgets) -> list[dict]:
     i = 0
     t0 = time.perf_counter()
     while len(out) < len(budgets):
-        img, diag = _render_pass_jit(scene, pass_key(seed, i), config)
+        img, diag = _pass(scene, pass_key(seed, i), config, i)
         img = np.asarray(_ready(img), dtype=np.float64)
         cam, light = _paths(diag)
         nonfinite += int(diag.nonfinite)
@@ -262,12 +271,12 @@ def _budget_row(budget, snap, over: bool) -> dict:
 
 def _throughput(scene, config, seed: int, passes: int) -> dict:
     """Median wall seconds of `passes` single passes (each waited for; no host copy)."""
-    from ._render import _render_pass_jit, pass_key
+    from ._render import pass_key
 
     times, cams, lights = [], [], []
     for i in range(passes):
         t0 = time.perf_counter()
-        img, diag = _ready(_render_pass_jit(scene, pass_key(seed, i), config))
+        img, diag = _ready(_pass(scene, pass_key(seed, i), config, i))
         times.append(time.perf_counter() - t0)
         c, lp = _paths(diag)
         cams.append(c)
@@ -320,7 +329,7 @@ def _load_reference(exr: Path, side: Path, want: dict, req_passes, req_time, sha
 def _render_reference(scene, config, seed: int, req_passes, req_time, log, label) -> tuple:
     """Average passes (float64) for `req_passes` passes or `req_time` seconds (>= 2
     passes), keeping the even and odd passes apart to estimate the reference's noise."""
-    from ._render import _render_pass_jit, pass_key
+    from ._render import pass_key
 
     acc = [None, None]
     n = [0, 0]
@@ -329,7 +338,7 @@ def _render_reference(scene, config, seed: int, req_passes, req_time, log, label
     last = t0
     i = 0
     while True:
-        img, diag = _render_pass_jit(scene, pass_key(seed, i), config)
+        img, diag = _pass(scene, pass_key(seed, i), config, i)
         img = np.asarray(_ready(img), dtype=np.float64)
         nonfinite += int(diag.nonfinite)
         k = i % 2

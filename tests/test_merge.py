@@ -84,11 +84,12 @@ def test_merge_overflow_flag_and_host_rerun_is_exact():
     assert not np.allclose(np.asarray(img_s), np.asarray(img_b))
 
 
+@pytest.mark.parametrize("alg", ["ppm", "vcm"])
 @pytest.mark.parametrize("r", [1e-6, 0.5])
-def test_ppm_extreme_radii_are_finite(r):
+def test_merging_extreme_radii_are_finite(r, alg):
     sc = jaxvcm.load_scene("scenes/pool_sun.toml", width=8, height=8)
     img, diag, _ = render_pass_host(sc, jax.random.key(0),
-                                    RenderConfig(algorithm="ppm", max_depth=4, radius=r), 0)
+                                    RenderConfig(algorithm=alg, max_depth=4, radius=r), 0)
     assert int(diag.nonfinite) == 0 and np.all(np.isfinite(np.asarray(img)))
 
 
