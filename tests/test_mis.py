@@ -307,3 +307,126 @@ def test_vcm_weights_sum_to_one_and_match_oracle(path, log_eta, dtype, tol, algo
         np.testing.assert_allclose(got, ref, rtol=50 * tol, atol=tol)
     if sum(rvc) + sum(rvm) > 0:
         assert abs(vc.sum() + vm.sum() - 1.0) <= tol
+
+
+# ---------------------------------------------------------------- geometric random paths
+def _geometric_path(rng, k, scene):
+    """A random full path x_0..x_k in the pool: x_0 on the area light, interior vertices on
+    the floor/walls (diffuse), in the water (medium) or on the water surface (delta),
+    x_k the camera. Returns per-vertex (A, B, q, delta, medium) computed with the
+    renderer's own pdf helpers (`_subpath.to_area`, `bsdf_pdf`, `_lights` emission and
+    light-point pdfs, the pinhole pdf), RR-free, plus light flags."""
+    from jaxvcm import _geometry as G
+    from jaxvcm import _lights as Lt
+    from jaxvcm import _subpath as SP
+    from jaxvcm._connect import camera_importance
+    from jaxvcm._vec import Vec3
+
+    f64 = jnp.float64
+    v3 = lambda a: Vec3(*(jnp.asarray(x, f64) for x in a))  # noqa: E731
+    w = scene.water
+    verts = []  # (p, n, kind, mat, medium, delta)
+    r = scene.rects
+    li = scene.lights.shape[0]
+    p0, e1, e2 = (np.asarray(x[li], float) for x in (r.p0, r.e1, r.e2))
+    nl = np.cross(e1, e2)
+    nl /= np.linalg.norm(nl)
+    verts.append((p0 + rng.uniform() * e1 + rng.uniform() * e2, nl, 0, int(r.mat[li]), False, False))
+    for _ in range(k - 1):
+        c = rng.integers(3)
+        x, z = rng.uniform(-0.95, 0.95, 2)
+        if c == 0:  # floor
+            verts.append((np.array([x, -1.2, z]), np.array([0.0, 1.0, 0.0]), 0, 0, False, False))
+        elif c == 1:  # water volume
+            verts.append((np.array([x, rng.uniform(-1.15, -0.05), z]), np.array([0.0, 1.0, 0.0]),
+                          3, 0, True, False))
+        else:  # water surface (delta)
+            h, _, _ = G.water_height(w, jnp.asarray(x, f64), jnp.asarray(z, f64))
+            n = G.water_normal(w, jnp.asarray(x, f64), jnp.asarray(z, f64))
+            verts.append((np.array([x, float(h), z]), np.array([float(n.x), float(n.y), float(n.z)]),
+                          1, w.mat, False, True))
+    cam = np.asarray(scene.camera.origin, float)
+    verts.append((cam, np.asarray(scene.camera.forward, float), -1, 0, False, False))
+    P = [v[0] for v in verts]
+
+    def unit(a, b):
+        d = P[b] - P[a]
+        return d / np.linalg.norm(d), float(np.linalg.norm(d))
+
+    def seg_water(a, b):
+        mid = 0.5 * (P[a] + P[b])
+        return bool(G.inside_water(w, v3(mid)))
+
+    def pdf_w_at(i, frm, to):  # solid-angle pdf at vertex i of sampling towards `to`, from `frm`
+        p_, n_, kind, mat, med, dl = verts[i]
+        if dl:
+            return 1.0
+        wo, _ = unit(i, frm)
+        wi, _ = unit(i, to)
+        return float(SP.bsdf_pdf(scene, jnp.int32(kind), jnp.int32(mat), None, v3(wo), v3(wi), v3(n_)))
+
+    def area(pdf_w, i_src, i_tgt):
+        wv, d = unit(i_src, i_tgt)
+        _, n_t, _, _, med, _ = verts[i_tgt]
+        return float(SP.to_area(jnp.asarray(pdf_w, f64), jnp.asarray(med), v3(n_t), v3(wv),
+                                jnp.asarray(d, f64), jnp.asarray(seg_water(i_src, i_tgt)), w))
+
+    A = [0.0] * (k + 1)
+    B = [0.0] * (k + 1)
+    A[0] = float(Lt.light_point_pdf(scene, jnp.int32(0), v3([0.0, 1.0, 0.0])))
+    wv, _ = unit(0, 1)
+    A[1] = area(float(Lt.emission_pdf_dir(scene, jnp.int32(0), v3(nl), v3(wv))), 0, 1) if k >= 2 else 1.0
+    for i in range(2, k + 1):
+        A[i] = 1.0 if verts[i - 1][5] else area(pdf_w_at(i - 1, i - 2, i), i - 1, i)
+    B[k] = 1.0
+    wc, _ = unit(k, k - 1)
+    _, imp, _ = camera_importance(scene, v3(wc))
+    B[k - 1] = area(float(imp), k, k - 1)
+    for i in range(k - 2, -1, -1):
+        B[i] = 1.0 if verts[i + 1][5] else area(pdf_w_at(i + 1, i + 2, i), i + 1, i)
+    q = [float(SP.local_q(jnp.int32(v[2]), scene.materials.albedo[v[3]])) if not v[4] else SP.Q_SPECULAR
+         for v in verts]
+    delta = [v[5] for v in verts]
+    return A, B, q, delta
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(1, LMAX - 1))
+def test_geometric_random_paths_in_the_pool(seed, k):
+    # Random vertex positions on surfaces, in the water and on the (delta) water surface of
+    # scenes/pool.toml, pdfs from the renderer's helpers, assembled by the renderer's
+    # `_connect.weight` with garbage in the join slots: weights over all techniques sum to 1
+    # (1e-10, float64) and equal the exact oracle.
+    import jaxvcm
+
+    scene = jaxvcm.load_scene("scenes/pool.toml", dtype=jnp.float64)
+    rng = np.random.default_rng(seed)
+    A, B, q, delta = _geometric_path(rng, k, scene)
+    assert all(np.isfinite(A)) and all(np.isfinite(B)) and min(A + B) >= 0
+    cfg = RenderConfig(algorithm="bdpt", max_depth=LMAX - 1, rr_depth=2, mis="power")
+
+    def rr(index, qq):
+        return 1.0 if index < cfg.rr_depth else qq
+
+    a_true = [A[i] * (rr(i - 1, q[i - 1]) if i >= 1 else 1.0) for i in range(k + 1)]
+    b_true = [B[i] * (rr(k - i - 1, q[i + 1]) if i < k else 1.0) for i in range(k + 1)]
+    ref = oracle(a_true, b_true, delta, k, False, False, 1, "bdpt", 2)
+    f64 = jnp.float64
+    ws = []
+    for s in range(0, k + 1):
+        t = k + 1 - s
+        mk = lambda vals, n: jnp.asarray(vals if vals else [1.0], f64)  # noqa: E731
+        lig = Pdfs(mk([A[i] for i in range(s)], s), mk([B[i] if i < s - 2 else 7.0 for i in range(s)], s),
+                   mk([q[i] for i in range(s)], s), jnp.asarray([delta[i] for i in range(s)] or [False]),
+                   jnp.zeros(max(s, 1), bool))
+        cam = Pdfs(mk([A[k - j] if j < t - 2 else 7.0 for j in range(t)], t), mk([B[k - j] for j in range(t)], t),
+                   mk([q[k - j] for j in range(t)], t), jnp.asarray([delta[k - j] for j in range(t)]),
+                   jnp.zeros(t, bool))
+        ov = lambda i, arr: jnp.asarray(arr[i] if 0 <= i <= k else 1.0, f64)  # noqa: E731
+        ws.append(float(weight(cfg, jnp.int32(s), jnp.int32(t), lig, cam, ov(s, A), ov(s + 1, A),
+                               ov(s - 1, B), ov(s - 2, B), jnp.asarray(False), jnp.asarray(False),
+                               jnp.log(jnp.asarray(1.0, f64)))))
+    ws.append(0.0)
+    np.testing.assert_allclose(ws, ref, rtol=1e-9, atol=1e-12)
+    if sum(ref) > 0:
+        assert abs(sum(ws) - 1.0) < 1e-10
