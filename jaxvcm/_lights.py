@@ -40,9 +40,17 @@ def selection_pdf(scene: Scene) -> Array:
 
 
 def rect_area(scene: Scene, i):
+    return rect_frame(scene, i)[4]
+
+
+def rect_frame(scene: Scene, i):
+    """(p0, e1, e2, unit normal, area) of rectangle i (the emitting side for lights)."""
+    p0 = V.from_array(scene.rects.p0[i])
     e1 = V.from_array(scene.rects.e1[i])
     e2 = V.from_array(scene.rects.e2[i])
-    return V.length(V.cross(e1, e2))
+    nl = V.cross(e1, e2)
+    area = V.length(nl)
+    return p0, e1, e2, nl / area, area
 
 
 def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
@@ -60,13 +68,7 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
     for k, kind in enumerate(lights.kind):
         Le = lights.radiance[k]
         if kind == LIGHT_RECT:
-            r = lights.shape[k]
-            p0 = V.from_array(scene.rects.p0[r])
-            e1 = V.from_array(scene.rects.e1[r])
-            e2 = V.from_array(scene.rects.e2[r])
-            nl = V.cross(e1, e2)
-            area = V.length(nl)
-            nl = nl / area
+            p0, e1, e2, nl, area = rect_frame(scene, lights.shape[k])
             q = p0 + e1 * u1 + e2 * u2
             dv = q - p
             d2 = V.dot(dv, dv)
@@ -244,13 +246,7 @@ def sample_emission(scene: Scene, u) -> Emission:
         Le = lights.radiance[k]
         if kind in (LIGHT_RECT, LIGHT_SPHERE):
             if kind == LIGHT_RECT:
-                r = lights.shape[k]
-                p0 = V.from_array(scene.rects.p0[r])
-                e1 = V.from_array(scene.rects.e1[r])
-                e2 = V.from_array(scene.rects.e2[r])
-                nl = V.cross(e1, e2)
-                area = V.length(nl)
-                n = nl / area
+                p0, e1, e2, n, area = rect_frame(scene, lights.shape[k])
                 p = p0 + e1 * u[1] + e2 * u[2]
                 loc = S.cosine_hemisphere(u[3], u[4])
                 d = V.to_world(loc, n)

@@ -110,18 +110,25 @@ def pool_scene(name, w, h, **over):
     return jaxvcm.scene_from_dict(d, name)
 
 
+def assert_algorithms_agree(scene, algs, max_depth, seed, passes=24, blocks=4, what=""):
+    """Independent renders of each algorithm (different seeds); block means agree within K
+    combined standard errors; returns the first algorithm's block means."""
+    res = []
+    for n, alg in enumerate(algs):
+        _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=max_depth),
+                                         passes=passes, seed=seed + n)
+        assert bad == 0
+        bm = block_means(imgs, blocks)
+        res.append((bm.mean(0), bm.std(0, ddof=1) / np.sqrt(bm.shape[0])))
+    for other in res[1:]:
+        assert_close(*res[0], *other, rel=1e-3, what=what)
+    return res[0][0]
+
+
 @pytest.mark.parametrize("name", ["pool_sky", "pool"])
 def test_pt_and_bdpt_agree_on_pool(name):
     # Both estimate the same (depth-truncated) image; compare 4x4 block means.
-    scene = pool_scene(name, 16, 16)
-    res = {}
-    for alg in ("pt", "bdpt"):
-        _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=5),
-                                         passes=24, seed=11 if alg == "pt" else 12)
-        assert bad == 0
-        bm = block_means(imgs)
-        res[alg] = (bm.mean(0), bm.std(0, ddof=1) / np.sqrt(bm.shape[0]))
-    assert_close(*res["pt"], *res["bdpt"], rel=1e-3, what=name)
+    assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt"), 5, seed=11, what=name)
 
 
 def test_lt_and_bdpt_agree_on_directly_lit_wall():
@@ -129,14 +136,7 @@ def test_lt_and_bdpt_agree_on_directly_lit_wall():
     # directly and by light reflected off the water (a caustic path sun -> water -> wall ->
     # camera that only light tracing can sample). Crop to the wall above the water line.
     scene = pool_scene("pool_wall", 16, 16, target=[0.0, 0.9, -1.0], fov=30)
-    res = {}
-    for alg in ("lt", "bdpt"):
-        _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=4),
-                                         passes=24, seed=21 if alg == "lt" else 22)
-        assert bad == 0
-        bm = block_means(imgs)
-        res[alg] = (bm.mean(0), bm.std(0, ddof=1) / np.sqrt(bm.shape[0]))
-    assert_close(*res["lt"], *res["bdpt"], rel=1e-3, what="pool_wall")
+    assert_algorithms_agree(scene, ("lt", "bdpt"), 4, seed=21, what="pool_wall")
 
 
 def test_lt_and_bdpt_agree_on_sun_caustics_from_under_water():
@@ -144,15 +144,9 @@ def test_lt_and_bdpt_agree_on_sun_caustics_from_under_water():
     # floor -> camera) are made by light tracing alone; BDPT must match it.
     scene = pool_scene("pool_sun", 16, 16, position=[0.3, -0.6, 0.5], target=[-0.2, -1.2, -0.4],
                        fov=60)
-    res = {}
-    for alg in ("lt", "bdpt"):
-        _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=4),
-                                         passes=24, seed=31 if alg == "lt" else 32)
-        assert bad == 0
-        bm = block_means(imgs, 2)
-        res[alg] = (bm.mean(0), bm.std(0, ddof=1) / np.sqrt(bm.shape[0]))
-    assert np.all(res["lt"][0] > 0)
-    assert_close(*res["lt"], *res["bdpt"], rel=1e-3, what="pool_sun under water")
+    lt = assert_algorithms_agree(scene, ("lt", "bdpt"), 4, seed=31, blocks=2,
+                                 what="pool_sun under water")
+    assert np.all(lt > 0)
 
 
 # ---------------------------------------------------------------- flat water, sun, camera under water
