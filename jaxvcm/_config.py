@@ -6,6 +6,7 @@ import dataclasses
 
 ALGORITHMS = ("pt", "lt", "bdpt", "ppm", "bpm", "vcm")  # flags of the one core
 MIS_HEURISTICS = ("balance", "power")
+MIS_FORMS = ("explicit", "recursive")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -25,6 +26,9 @@ class RenderConfig:
     alpha:       radius reduction exponent (0 < alpha < 1).
     merge_capacity: static bound on hash-grid candidates per gather point; overflow is
                  flagged in the diagnostics and the host re-runs the pass with more room.
+    mis_form:    "explicit" (log-space sums over all techniques, `_mis.py`) or "recursive"
+                 (the tech report's dVCM/dVC/dVM recursion in linear space,
+                 `_mis_recursive.py`: same weights, but limited float32 range).
     """
 
     algorithm: str = "pt"
@@ -36,6 +40,7 @@ class RenderConfig:
     radius: float = 0.005
     alpha: float = 0.75
     merge_capacity: int = 512
+    mis_form: str = "explicit"
 
     def __post_init__(self):
         if self.algorithm not in ALGORITHMS:
@@ -43,6 +48,8 @@ class RenderConfig:
                              f"one of {', '.join(ALGORITHMS)}")
         if self.mis not in MIS_HEURISTICS:
             raise ValueError(f"config.mis: unknown {self.mis!r}; one of {MIS_HEURISTICS}")
+        if self.mis_form not in MIS_FORMS:
+            raise ValueError(f"config.mis_form: unknown {self.mis_form!r}; one of {MIS_FORMS}")
         for name in ("max_depth", "march_steps", "spp"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:

@@ -29,6 +29,7 @@ from . import _geometry as G
 from . import _lights as Lt
 from . import _media as Md
 from . import _mis
+from . import _mis_recursive
 from . import _subpath as SP
 from . import _vec as V
 from ._config import RenderConfig
@@ -162,9 +163,10 @@ def weight(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_s2,
     beta = 2.0 if cfg.mis == "power" else 1.0
     k = s + t - 1
     log_eta = jnp.where(medium, log_eta_med, log_eta_surf)
-    w = _mis.mis_weight(jax.lax.stop_gradient(a), jax.lax.stop_gradient(b), delta, k, s,
-                        delta_light, infinite_light, log_n_lt, cfg.algorithm, beta,
-                        jax.lax.stop_gradient(log_eta), merge)
+    mis_fn = _mis_recursive.mis_weight_recursive if cfg.mis_form == "recursive" else _mis.mis_weight
+    w = mis_fn(jax.lax.stop_gradient(a), jax.lax.stop_gradient(b), delta, k, s,
+               delta_light, infinite_light, log_n_lt, cfg.algorithm, beta,
+               jax.lax.stop_gradient(log_eta), merge)
     return jax.lax.stop_gradient(w)
 
 
