@@ -101,10 +101,10 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
     # ---- film ----
     images = {}
     for key_st, val in out.items():
-        if isinstance(val, tuple):  # light-tracing splat (pixel, value)
-            pix, v = val
+        if isinstance(val, tuple):  # light-tracing splat (pixel, value): each of the N
+            pix, v = val                 # light paths carries 1/N already, whatever spp is
             img = jnp.zeros((P, C), dt).at[pix].add(v)
-            images[key_st] = (img / cfg.spp).reshape(H, W, C)
+            images[key_st] = img.reshape(H, W, C)
         else:
             images[key_st] = val.reshape(cfg.spp, H, W, C).mean(axis=0)
     return images, stats

@@ -143,15 +143,25 @@ def path_pdfs(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_
     return a, b, delta & (i <= k), medium
 
 
+def log_n_light_tracing(cfg: RenderConfig, n_paths, dtype):
+    """log of light tracing's sample count relative to the camera techniques, per pixel:
+    each of the N = pixels * spp light paths splats once (n = N per pixel, Veach 1997
+    10.3.4) while a pixel has spp camera paths, so n_LT / n_camera = N / spp = pixels."""
+    return jnp.log(jnp.asarray(n_paths // cfg.spp, dtype))
+
+
 def log_etas(radius, n_paths, dtype):
-    """log of the merging multiplicity times kernel size: (surface pi r^2 N, medium
-    4/3 pi r^3 N); zeros when there is no merging."""
+    """log of the merging multiplicity times kernel size, eta_VCM (Georgiev et al. 2012):
+    (surface pi r_s^2 N, medium 4/3 pi r_m^3 N); `radius` is a `_merge.Radii` (surface,
+    medium) or one radius for both; zeros when there is no merging."""
     if radius is None:
         z = jnp.zeros((), dtype)
         return z, z
     ln = jnp.log(jnp.asarray(n_paths, dtype))
-    r = jnp.asarray(radius, dtype)
-    return ln + jnp.log(jnp.pi * r * r), ln + jnp.log(4.0 / 3.0 * jnp.pi * r * r * r)
+    rs, rm = (radius.surface, radius.medium) if hasattr(radius, "medium") else (radius, radius)
+    rs = jnp.asarray(rs, dtype)
+    rm = jnp.asarray(rm, dtype)
+    return ln + jnp.log(jnp.pi * rs * rs), ln + jnp.log(4.0 / 3.0 * jnp.pi * rm * rm * rm)
 
 
 def weight(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_s2,
@@ -257,7 +267,7 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: SP.Verte
     one = jnp.ones((D, N), dt)
     w = family_weights(cfg, np.zeros(D), js + 1, _pdfs(cam), (None, 1), _pdfs(cam), (None, 1),
                        A_s, A_s1, one, one, jnp.zeros((), bool), esc,
-                       jnp.log(jnp.asarray(N, dt)), etas)
+                       log_n_light_tracing(cfg, N, dt), etas)
     ok = z.alive & jnp.any(Le > 0, axis=-1)
     contrib = jnp.where(ok[..., None], z.beta * Le * w[..., None], 0.0)
     return {(0, int(j) + 1): contrib[i] for i, j in enumerate(js)}
@@ -306,7 +316,7 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
     lig = Pdfs(A0[..., None], B0[..., None], jnp.ones((J, N, 1), dt), f1, f1)
     one = jnp.ones((J, N), dt)
     w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), _pdfs(cam), (None, 1),
-                       A_s, A_s1, B0, one, is_delta_l, inf, jnp.log(jnp.asarray(N, dt)), etas)
+                       A_s, A_s1, B0, one, is_delta_l, inf, log_n_light_tracing(cfg, N, dt), etas)
     ok = z.alive & ~z.delta & ls.valid & vis
     contrib = jnp.where(ok[..., None], contrib * w[..., None], 0.0)
     return {(1, int(j) + 1): contrib[i] for i, j in enumerate(js)}
@@ -372,7 +382,7 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: Lt.Emission
     camp = Pdfs(N0, N0, N0, jnp.zeros((1, N), bool), jnp.zeros((1, N), bool))  # z_0 alone
     wgt = family_weights(cfg, idx + 1, np.ones(J), _pdfs(lig), (None, 1), camp, (None, 1),
                          one, one, B_s1, B_s2, e.delta[None], e.infinite[None],
-                         jnp.log(jnp.asarray(N, dt)), etas)
+                         log_n_light_tracing(cfg, N, dt), etas)
     good = ok & vis & inside
     val = jnp.where(good[..., None], contrib * wgt[..., None], 0.0)
     return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
@@ -411,7 +421,7 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     B_s2 = jnp.where(((ss - 2) == 0)[:, None] & e.infinite[None], p4, b)
     J = len(pairs)
     wgt = family_weights(cfg, ss, ts, _pdfs(lig), (None, 1), _pdfs(cam), (None, 1), A_s, A_s1,
-                         B_s1, B_s2, e.delta[None], e.infinite[None], jnp.log(jnp.asarray(N, dt)),
+                         B_s1, B_s2, e.delta[None], e.infinite[None], log_n_light_tracing(cfg, N, dt),
                          etas)
     ok = y.alive & ~y.delta & z.alive & ~z.delta & vis
     val = jnp.where(ok[..., None], contrib * wgt[..., None], 0.0)

@@ -1,4 +1,5 @@
-"""Vertex merging, first step: progressive photon mapping (`ppm`) on the bidirectional core.
+"""Vertex merging on the bidirectional core: progressive photon mapping (`ppm`) and merging
+with MIS (`bpm`, `vcm`: `vertex_merging` below).
 
 Photons are the stored light-subpath vertices y_i, i >= 1, that are alive and not delta
 (surface or medium). Each camera subpath follows its delta prefix to its first non-delta
@@ -6,18 +7,26 @@ vertex z_j and gathers there, like with like (surface photons on the same side o
 surface, with the disk kernel 1 / (pi r^2); medium photons with the sphere kernel
 1 / (4/3 pi r^3)), over the sorted hash grid (`_hashgrid`), with the 1/N light-path
 normalisation:
-    L += beta_z * sum_photons f_z(wo_z, wo_y) beta_y / (kernel N),  segments i + j <= D.
+    L += beta_z * sum_photons f_z(wo_z, wo_y) beta_y / (kernel N),  segments i + j <= D,
+with f_z the BSDF without its cosine on surfaces and the phase function over sigma_s in the
+medium (both throughputs carry sigma_s of their own scattering event; the merged path has
+one, see `_one_scattering_event`).
 Emission met along the delta prefix (and at z_j itself) is added with weight 1: pure
-photon mapping has no other technique for it. Merging MIS (BPM / VCM) is future work.
+photon mapping has no other technique for it.
+
+Radii: surfaces and the medium have their own progressive schedules (`pass_radius`); the
+grid is built for the larger one and each pair is accepted with its own kind's radius.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from . import _hashgrid as HG
 from . import _subpath as SP
@@ -28,14 +37,52 @@ from ._scene import Scene
 from ._vec import Vec3
 
 
-def pass_radius(cfg: RenderConfig, scene: Scene, pass_index):
-    """r_i = r_1 i^((alpha - 1) / 2), i = pass_index + 1 (Knaus & Zwicker 2011); r_1 is
-    `cfg.radius` times the scene's bounding radius."""
+class Radii(NamedTuple):
+    """Merging radii of one pass: disk kernel on surfaces, sphere kernel in the medium."""
+
+    surface: Array
+    medium: Array
+
+
+def pass_radius(cfg: RenderConfig, scene: Scene, pass_index) -> Radii:
+    """Progressive radii of pass i = pass_index + 1 (Knaus & Zwicker 2011):
+        surfaces  r_i = r_1 i^((alpha - 1) / 2)   (2-D density estimate),
+        medium    r_i = r_1 i^((alpha - 1) / 3)   (3-D: the variance of a sphere kernel
+                  grows as r^-3, so the radius shrinks more slowly for the same alpha),
+    r_1 = `cfg.radius` times the scene's bounding radius. The pass index alone drives the
+    schedule, so resumed and sharded renders agree."""
     from ._scene import bounding_sphere
 
     _, rb = bounding_sphere(scene)
     i = jnp.asarray(pass_index, rb.dtype) + 1.0
-    return jax.lax.stop_gradient(cfg.radius * rb * i ** ((cfg.alpha - 1.0) / 2.0))
+    r1 = cfg.radius * rb
+    return Radii(jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 2.0)),
+                 jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 3.0)))
+
+
+def kernel_size(medium, radius: Radii):
+    """pi r^2 (surface disk) or 4/3 pi r^3 (medium sphere), per vertex."""
+    return jnp.where(medium, 4.0 / 3.0 * jnp.pi * radius.medium**3, jnp.pi * radius.surface**2)
+
+
+def _within(medium, d2, radius: Radii):
+    r = jnp.where(medium, radius.medium, radius.surface)
+    return d2 <= r * r
+
+
+def _search_radius(radius: Radii):
+    return jnp.maximum(radius.surface, radius.medium)
+
+
+def _one_scattering_event(scene: Scene, medium):
+    """[B, C] factor 1/sigma_s at medium merges, 1 on surfaces. Both subpath throughputs
+    carry the scattering coefficient of their own free-flight event (sigma_s T / p), but
+    the merged path has one scattering event at x_s, so sigma_s must count once (Jensen's
+    volume radiance estimate L = 1/sigma_s sum p dPhi / (4/3 pi r^3)). A channel with
+    sigma_s = 0 does not scatter at all: its merged contribution is 0."""
+    sig = scene.water.sigma_s
+    inv = jnp.where(sig > 0, 1.0 / jnp.where(sig > 0, sig, 1.0), 0.0)
+    return jnp.where(medium[:, None], inv[None, :], 1.0)
 
 
 def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Vertex,
@@ -57,7 +104,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
     pvalid = flat(lig.alive) & ~flat(lig.delta)
     M = pp.x.shape[0]
     table = 1 << max(4, int(math.ceil(math.log2(max(M, 16)))))
-    grid = HG.build(pp.x, pp.y, pp.z, pvalid, radius, table_size=table, dtype=dt)
+    grid = HG.build(pp.x, pp.y, pp.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
 
     # ---- gather vertex: the first non-delta camera vertex ----
     nd = cam.alive[1:] & ~cam.delta[1:]  # [D, N] for z_1..z_D
@@ -82,13 +129,14 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
         cosp = jnp.where(zmed[qi], 1.0, jnp.abs(V.dot(nz, wo_p)))
         f = f / jnp.maximum(cosp, 1e-8)[:, None]  # f without the cosine (density does it)
         depth_ok = pdepth[pj] + j[qi] <= D
-        ok = same & facing & depth_ok
+        ok = same & facing & depth_ok & _within(zmed[qi], d2, radius)
+        f = f * _one_scattering_event(scene, zmed[qi])
         return jnp.where(ok[:, None], f * pbeta[pj], 0.0)
 
-    total, count, overflow = HG.query_reduce(grid, zp.x, zp.y, zp.z, kernel, radius,
+    total, count, overflow = HG.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
+                                             _search_radius(radius),
                                              max_candidates=cfg.merge_capacity)
-    area = jnp.where(zmed, 4.0 / 3.0 * jnp.pi * radius**3, jnp.pi * radius**2)
-    est = zbeta * total / (area * N)[:, None]
+    est = zbeta * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(has[:, None], est, 0.0)
     # ---- emission along the delta prefix and at the gather vertex (weight 1) ----
     jj = jnp.arange(1, D + 1, dtype=jnp.int32)[:, None]
@@ -111,7 +159,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     D = cfg.max_depth
     dt = cam.A.dtype
     etas = CN.log_etas(radius, N, dt)
-    log_n = jnp.log(jnp.asarray(N, dt))
+    log_n = CN.log_n_light_tracing(cfg, N, dt)
     # ---- photons y_1..y_{D-1}, gather points z_1..z_{D-1}, flattened (index = row * N + lane)
     li = np.arange(1, lig.A.shape[0])
     ci = np.arange(1, D)
@@ -119,7 +167,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     pvalid = flat(lig.alive, li) & ~flat(lig.delta, li)
     py = Vec3(*(flat(c, li) for c in lig.p))
     table = 1 << max(4, int(math.ceil(math.log2(max(py.x.shape[0], 16)))))
-    grid = HG.build(py.x, py.y, py.z, pvalid, radius, table_size=table, dtype=dt)
+    grid = HG.build(py.x, py.y, py.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
     zq = Vec3(*(flat(c, ci) for c in cam.p))
     zvalid = flat(cam.alive, ci) & ~flat(cam.delta, ci)
     # queries of dead / delta camera vertices are moved far away (no neighbours)
@@ -142,11 +190,12 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
         y = at(lig, ip, ll)
         yp = at(lig, ip - 1, ll)
         same = (z.medium == y.medium) & (z.medium | (V.dot(z.n, y.n) > 0))
-        ok = same & (ip + jq <= D) & z.alive & ~z.delta & y.alive & ~y.delta
+        ok = (same & (ip + jq <= D) & z.alive & ~z.delta & y.alive & ~y.delta
+              & _within(z.medium, d2, radius))
         fz = jax.vmap(lambda k_, m_, a, b, n_: SP.eval_f(scene, k_, m_, a, b, n_))(
             z.kind, z.mat, z.wo, y.wo, z.n)
         cz = jnp.where(z.medium, 1.0, jnp.abs(V.dot(z.n, y.wo)))
-        fz = fz / jnp.maximum(cz, 1e-8)[:, None]
+        fz = fz / jnp.maximum(cz, 1e-8)[:, None] * _one_scattering_event(scene, z.medium)
         # ---- the pdfs that change at the merge (x_s = z, photon y_s = y) ----
         pa1 = jax.vmap(bp)(z.kind, z.mat, y.wo, z.wo, z.n)  # z_{j-1} through z, from y_{i-1}
         dz = zp.p - z.p
@@ -168,11 +217,11 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
             log_n, etas[0], etas[1], True)
         return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
 
-    total, count, overflow = HG.query_reduce(grid, zq.x, zq.y, zq.z, kernel, radius,
+    total, count, overflow = HG.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
+                                             _search_radius(radius),
                                              max_candidates=cfg.merge_capacity)
     zmed = flat(cam.medium, ci)
-    area = jnp.where(zmed, 4.0 / 3.0 * jnp.pi * radius**3, jnp.pi * radius**2)
-    est = flat(cam.beta, ci) * total / (area * N)[:, None]
+    est = flat(cam.beta, ci) * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(zvalid[:, None], est, 0.0).reshape(len(ci), N, -1)
     return est, overflow
 

@@ -45,15 +45,20 @@ def technique_stats(scene, cfg, passes, seed=0, batch=8):
 
 
 # ---------------------------------------------------------------- furnace, every algorithm
+@pytest.mark.parametrize("spp", [1, 4], ids=lambda v: f"spp{v}")
 @pytest.mark.parametrize("alg", ALGS)
-def test_sphere_furnace_all_algorithms_per_path_length(alg):
+def test_sphere_furnace_all_algorithms_per_path_length(alg, spp):
     # Closed emitting sphere, albedo a, camera inside (see test_transport): every path of
     # k segments contributes exactly Le a^(k-1), and every algorithm, summed over its
     # techniques for that k, must reproduce it. Checking each k separately catches a
-    # wrong MIS weight even where the total would hide it.
+    # wrong MIS weight even where the total would hide it. spp = 4 (8x8 pixels, the same
+    # 256 light paths): light-tracing splats carry 1/N_light already and must not be
+    # averaged over spp again (an earlier bug made LT spp times too dark).
     Le, a, D = np.array([0.5, 1.0, 2.0]), np.array([0.3, 0.6, 0.9]), 4
-    scene = jaxvcm.scene_from_dict(A.sphere_furnace(Le, a, w=16, h=16))
-    tech = technique_stats(scene, RenderConfig(algorithm=alg, max_depth=D, rr_depth=100),
+    w = 16 if spp == 1 else 8
+    scene = jaxvcm.scene_from_dict(A.sphere_furnace(Le, a, w=w, h=w))
+    tech = technique_stats(scene, RenderConfig(algorithm=alg, max_depth=D, rr_depth=100,
+                                               spp=spp),
                            passes=24 if alg == "lt" else 8)
     for k in range(1, D + 1):
         per = sum(v for (s, t), v in tech.items() if s + t - 1 == k)  # [P, H, W, C]
