@@ -13,3 +13,8 @@ from ._render import pass_key as pass_key
 from ._render import render as render
 from ._render import render_pass as render_pass
 from ._scene import Scene as Scene
+from ._spectral import SpectralScene as SpectralScene
+from ._spectral import render_pass_spectral as render_pass_spectral
+from ._spectral import render_spectral as render_spectral
+from ._spectral import spectral_scene as spectral_scene
+from ._water_optics import WaterModel as WaterModel
