@@ -65,7 +65,12 @@ def _parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("render", help="render a scene progressively to EXR + PNG + JSON")
     r.add_argument("scene", metavar="SCENE", help="scene file (.toml)")
-    r.add_argument("--algorithm", default="pt", choices=ALGORITHMS)
+    r.add_argument("--algorithm", default="vcm", choices=ALGORITHMS,
+                   help="vcm (default): all connections and merges; pt, lt, bdpt, ppm, bpm: "
+                        "subsets of the same core")
+    r.add_argument("--radius", type=_finite_float(positive=True), default=None, metavar="R",
+                   help="first-pass merging radius as a fraction of the scene's bounding "
+                        "radius (ppm/bpm/vcm; default 0.005)")
     g = r.add_mutually_exclusive_group()
     g.add_argument("--passes", type=_pos_int(), metavar="N",
                    help="number of passes (1 sample per pixel each)")
@@ -138,6 +143,8 @@ def _cmd_render(a) -> int:
     cfg = {"algorithm": a.algorithm}
     if a.max_depth is not None:
         cfg["max_depth"] = a.max_depth
+    if a.radius is not None:
+        cfg["radius"] = a.radius
     config = RenderConfig(**cfg)
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
     d = os.path.dirname(os.path.abspath(out))

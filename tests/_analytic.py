@@ -98,6 +98,9 @@ def render_stats(scene, config, passes, seed=0, batch=8):
         n = min(batch, passes - b0)
         keys = jnp.stack([jaxvcm.pass_key(seed, b0 + i) for i in range(n)])
         img, diag = _passes(scene, keys, config, n)
+        # merging results with an overflowed hash-grid gather are not estimates: refuse them
+        # (raise config.merge_capacity; the host driver render_pass_host does that itself)
+        assert not np.any(np.asarray(diag.merge_overflow)), "merge capacity overflow"
         imgs.append(np.asarray(img, np.float64))
         bad += int(np.sum(np.asarray(diag.nonfinite)))
     imgs = np.concatenate(imgs)

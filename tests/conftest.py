@@ -15,3 +15,20 @@ _cache = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))
 jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+
+
+import gc  # noqa: E402
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop in-memory compiled programs after each test module. A single pytest process
+    otherwise keeps every executable of the whole suite alive (hundreds of programs, many
+    GB); CI once aborted inside XLA while serialising an executable for the persistent
+    cache late in the run. Later modules that need a program again get it back from the
+    persistent cache."""
+    yield
+    jax.clear_caches()
+    gc.collect()

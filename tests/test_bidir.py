@@ -131,9 +131,13 @@ def assert_algorithms_agree(scene, algs, max_depth, seed, passes=24, blocks=4, w
 
 
 @pytest.mark.parametrize("name", ["pool_sky", "pool"])
-def test_pt_and_bdpt_agree_on_pool(name):
-    # Both estimate the same (depth-truncated) image; compare 4x4 block means.
-    assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt"), 5, seed=11, what=name)
+def test_pt_bdpt_and_vcm_agree_on_pool(name):
+    # All three estimate the same (depth-truncated) image; compare 4x4 block means. VCM adds
+    # the merging bias, which at the default radius (0.005 R_bound ~ 8 mm, shrinking with
+    # the passes) is far below these standard errors (tests/test_merge.py measures the bias
+    # against radius on a scene built to show it).
+    assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt", "vcm"), 5, seed=11,
+                            what=name)
 
 
 def test_lt_and_bdpt_agree_on_directly_lit_wall():
@@ -149,7 +153,7 @@ def test_lt_and_bdpt_agree_on_sun_caustics_from_under_water():
     # floor -> camera) are made by light tracing alone; BDPT must match it.
     scene = pool_scene("pool_sun", 16, 16, position=[0.3, -0.6, 0.5], target=[-0.2, -1.2, -0.4],
                        fov=60)
-    lt = assert_algorithms_agree(scene, ("lt", "bdpt"), 4, seed=31, blocks=2,
+    lt = assert_algorithms_agree(scene, ("lt", "bdpt", "vcm"), 4, seed=31, blocks=2,
                                  what="pool_sun under water")
     assert np.all(lt > 0)
 
@@ -228,9 +232,11 @@ HARD = {
 }
 
 
-@pytest.mark.parametrize("alg", ["lt", "bdpt"])
+@pytest.mark.parametrize("alg", ["lt", "bdpt", "vcm-r1e-06", "vcm-r0.5"])
 @pytest.mark.parametrize("case", sorted(HARD))
 def test_hard_cases_finite_bidirectional(case, alg):
+    # vcm at a vanishing (1e-6 R_bound) and a huge (0.5 R_bound) merging radius: eta -> 0
+    # and eta -> large push the MIS weights to their limits; every value stays finite.
     with open("scenes/pool.toml", "rb") as f:
         d = tomllib.load(f)
     d["camera"].update(width=10, height=10)
@@ -240,6 +246,8 @@ def test_hard_cases_finite_bidirectional(case, alg):
     if case == "grazing_connections":
         d["lights"][0].update(center=[0.0, 0.11, -0.9], normal=[0.0, -0.05, 1.0])
     scene = jaxvcm.scene_from_dict(d, case)
-    _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=5), passes=2)
+    alg, _, r = alg.partition("-r")
+    cfg = RenderConfig(algorithm=alg, max_depth=5, **({"radius": float(r)} if r else {}))
+    _, _, imgs, bad = A.render_stats(scene, cfg, passes=2)
     assert bad == 0
     assert np.all(np.isfinite(imgs)) and np.all(imgs >= 0)

@@ -186,7 +186,8 @@ def test_render_tiny_default_out(tmp_path, monkeypatch, capsys):
     exr = tmp_path / "out" / "pool.exr"
     assert out.strip() == os.path.join("out", "pool.exr")
     meta = _check_outputs(exr, snapshot=False)
-    assert meta["passes"] == 2 and meta["seed"] == 3 and meta["algorithm"] == "pt"
+    # vcm is the default algorithm (issue 4)
+    assert meta["passes"] == 2 and meta["seed"] == 3 and meta["algorithm"] == "vcm"
     assert meta["config"]["max_depth"] == 3 and meta["scene"] == POOL
     assert meta["nonfinite"] == 0
     assert _visible(tmp_path / "out") == {"pool.exr", "pool.png", "pool.json"}
@@ -194,7 +195,8 @@ def test_render_tiny_default_out(tmp_path, monkeypatch, capsys):
 
 
 def _start_render(out: Path, log: Path):
-    args = [sys.executable, "-m", "jaxvcm.cli", "render", POOL, *TINY, "--time", "120",
+    args = [sys.executable, "-m", "jaxvcm.cli", "render", POOL, *TINY, "--algorithm", "pt",
+            "--time", "120",
             "--snapshot-every", "0.5", "--out", str(out)]
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=open(log, "w"),
                             env=_env(), cwd=out.parent)
