@@ -33,7 +33,7 @@ Upsampling at scene load (`spectral_scene`), all with colour-science:
 
 Water: `WaterModel` (pure water + CDOM-like and flat absorption + power-law particle
 scattering). One refractive index for the whole scene (not dispersive): by default the
-Daimon & Masumura n(550 nm) = 1.33394; `ior="scene"` keeps the RGB scene's value and a
+Daimon & Masumura n(550 nm) = 1.33468; `ior="scene"` keeps the RGB scene's value and a
 number sets it. Phase function: HG with the model's g when b_p > 0, the pure-water phase
 (1 + 0.925 cos^2) otherwise (`phase="scene"` keeps the RGB scene's phase).
 
