@@ -37,12 +37,19 @@ Daimon & Masumura n(550 nm) = 1.33468; `ior="scene"` keeps the RGB scene's value
 number sets it. Phase function: HG with the model's g when b_p > 0, the pure-water phase
 (1 + 0.925 cos^2) otherwise (`phase="scene"` keeps the RGB scene's phase).
 
-NOT implemented: dispersion at the water surface (the issue's optional "dispersive
-refraction" with secondary wavelengths terminated or MIS-weighted). With one index per
-scene every wavelength of a path takes the same refracted direction, so the C channels can
-share one path; a dispersive option needs per-wavelength refraction in the kernels, which
-this module deliberately does not touch. Light selection uses the RGB scene's power
-weights (any positive weights are unbiased; they are detached).
+Dispersion (option, off by default): with one index per scene every wavelength of a path
+takes the same refracted direction, so the C channels share one path. With
+`dispersion=True` each wavelength gets its own index n(lambda) (Daimon & Masumura,
+shifted to pass through the scene's index at 550 nm) and is traced on its OWN path: the
+pass vmaps the unchanged `render_pass` over C single-wavelength scenes with the same core
+key. That is exact (no secondary wavelength ever follows a refraction computed for
+another) but costs C times a non-dispersive pass. NOT implemented: the hero-wavelength
+literature's cheaper form (secondary wavelengths sharing the hero's path, terminated or
+MIS-weighted at dispersive refractions); it needs per-wavelength refraction pdfs inside
+the kernels, which this module deliberately does not touch.
+
+Light selection uses the RGB scene's power weights (any positive weights are unbiased;
+they are detached).
 """
 
 from __future__ import annotations
@@ -162,16 +169,26 @@ class SpectralScene(eqx.Module):
     n_wavelengths: int = eqx.field(static=True, default=8)
     phase_kind: int = eqx.field(static=True, default=PHASE_WATER)
     phase_b: float = eqx.field(static=True, default=PURE_WATER_PHASE_B)
+    dispersion: bool = eqx.field(static=True, default=False)
 
-    def at_wavelengths(self, lam: Float[Array, "C"]) -> Scene:
-        """The RGB scene with C = len(lam) channels, one per wavelength."""
+    def ior_at(self, lam: Array) -> Array:
+        """The water's index at lam: `ior` without dispersion; with dispersion the
+        Daimon & Masumura curve shifted so that it passes through `ior` at 550 nm."""
+        dt = lam.dtype
+        if not self.dispersion:
+            return jnp.broadcast_to(self.ior.astype(dt), lam.shape)
+        return water_ior(lam) + (self.ior.astype(dt) - water_ior(jnp.asarray(550.0, dt)))
+
+    def at_wavelengths(self, lam: Float[Array, "C"], ior: Array | None = None) -> Scene:
+        """The RGB scene with C = len(lam) channels, one per wavelength, and the water
+        index `ior` (default: the non-dispersive `self.ior`)."""
         s = self.scene
         dt = s.bounds.dtype
         lam = lam.astype(dt)
         C = lam.shape[0]
         albedo = _interp_rows(lam, self.albedo.astype(dt))
         emission = _interp_rows(lam, self.emission.astype(dt))
-        ior = self.ior.astype(dt)
+        ior = (self.ior if ior is None else ior).astype(dt)
         w = s.water
         if w.enabled:
             sig_a = jnp.maximum(self.water.sigma_a(lam).astype(dt), 0.0)
@@ -198,7 +215,8 @@ class SpectralScene(eqx.Module):
 
 def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths: int = 8,
                    sun: str = "D65", sun_temperature: float = 5778.0,
-                   ior: str | float = "data", phase: str = "auto") -> SpectralScene:
+                   ior: str | float = "data", phase: str = "auto",
+                   dispersion: bool = False) -> SpectralScene:
     """Upsample an RGB scene once (host side): albedo and light spectra, water model.
 
     water:  the `WaterModel` (default: pure water).
@@ -206,6 +224,10 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
             number; one index for all wavelengths (no dispersion).
     phase:  "auto" (HG with water.g if b_p > 0, else the pure-water phase) or "scene".
     sun:    "D65" or "blackbody" (at `sun_temperature` K) for sun lights; other lights D65.
+    dispersion: off (default): one index, every wavelength shares each path. On: every
+            wavelength is traced on its own path (same core key) with its own index
+            n(lambda) (Daimon & Masumura, shifted to pass through the chosen index at
+            550 nm): exact, at C times the cost of a pass.
     """
     if n_wavelengths < 1:
         raise ValueError(f"n_wavelengths: must be >= 1, got {n_wavelengths}")
@@ -231,7 +253,7 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
     A = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype=dt)  # noqa: E731
     water = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dt) if eqx.is_array(x) else x, water)
     return SpectralScene(scene, water, A(albedo), A(emission), A(_tables()["cmf"]), A(n),
-                         n_wavelengths, kind, pb)
+                         n_wavelengths, kind, pb, bool(dispersion))
 
 
 class SpectralDiagnostics(eqx.Module):
@@ -248,8 +270,19 @@ def render_pass_spectral(spectral: SpectralScene, key: PRNGKeyArray,
     n_wavelengths and the image size."""
     k_lam, k_render = split_pass_key(key)
     lam = sample_wavelengths(k_lam, spectral.n_wavelengths, spectral.scene.bounds.dtype)
-    scene_c = spectral.at_wavelengths(lam)
-    L, diag = render_pass(scene_c, k_render, config, pass_index)
+    if not spectral.dispersion:
+        scene_c = spectral.at_wavelengths(lam)
+        L, diag = render_pass(scene_c, k_render, config, pass_index)
+    else:
+        # one single-wavelength scene per wavelength, each with its own index; the same core
+        # key for all (correlated, each one unbiased)
+        def one(l1, n1):
+            return render_pass(spectral.at_wavelengths(l1, n1), k_render, config, pass_index)
+
+        Ls, diags = jax.vmap(one)(lam[:, None], spectral.ior_at(lam))  # [C, H, W, 1]
+        L = jnp.moveaxis(Ls[..., 0], 0, -1)
+        diag = jax.tree_util.tree_map(
+            lambda x: jnp.any(x) if x.dtype == jnp.bool_ else jnp.sum(x).astype(x.dtype), diags)
     xyz = L @ spectral.xyz_weights(lam).astype(L.dtype)
     return xyz, SpectralDiagnostics(diag, lam, L)
 

@@ -18,7 +18,6 @@ import pytest
 
 import jaxvcm
 from jaxvcm import RenderConfig
-from jaxvcm._render import render_pass
 from jaxvcm._spectral import (
     LAMBDA_RANGE,
     cmf_table,
@@ -341,3 +340,52 @@ def test_render_spectral_driver(tmp_path):
     assert rgb.shape == (4, 4, 3)
     for ext in (".exr", ".png", ".json"):
         assert (tmp_path / ("s" + ext)).exists()
+
+
+# ---------------------------------------------------------------- dispersion option
+def test_dispersion_on_equals_off_where_it_cannot_matter():
+    # Camera inside the water looking at the emitting floor: no path crosses the surface,
+    # so the index is irrelevant. Dispersion on traces each wavelength on its own path with
+    # the same core key; with sigma_s = 0 those paths are the shared path of the
+    # non-dispersive pass, so the raw per-wavelength radiance is identical (float32 1e-6).
+    scene = jaxvcm.scene_from_dict(underwater_emitter(2.0))
+    cfg = RenderConfig(max_depth=2)
+    key = jaxvcm.pass_key(1, 0)
+    out = {}
+    for disp in (False, True):
+        ss = spectral_scene(scene, WaterModel(pure_scattering=False), n_wavelengths=8,
+                            dispersion=disp)
+        xyz, diag = jax.jit(render_pass_spectral, static_argnums=2)(ss, key, cfg)
+        out[disp] = (np.asarray(xyz, np.float64), np.asarray(diag.radiance, np.float64))
+        assert int(diag.core.nonfinite) == 0
+    assert np.allclose(out[True][1], out[False][1], rtol=1e-5)
+    assert np.allclose(out[True][0], out[False][0], rtol=1e-5)
+
+
+def test_dispersion_at_the_surface_per_wavelength():
+    # flat_water_slab with the default index (n(550) = 1.33468) and dispersion on: each
+    # wavelength refracts with its own Daimon & Masumura n(lambda_c) (1.3436 at 400 nm,
+    # 1.3305 at 700 nm), so a refracted path carries Le exp(-a_w d) / n(lambda_c)^2,
+    # which differs from the non-dispersive 1 / n(550)^2 by up to ~1.5%, far above the 2e-4
+    # tolerance (the control below checks that the test can tell them apart).
+    d = 1.0
+    scene = jaxvcm.scene_from_dict(A.flat_water_slab(d, (0.0,) * 3, 1.33, (1.0,) * 3, w=8, h=8))
+    ss = spectral_scene(scene, WaterModel(pure_scattering=False), n_wavelengths=8,
+                        dispersion=True)
+    _, diag = jax.jit(render_pass_spectral, static_argnums=2)(
+        ss, jaxvcm.pass_key(3, 0), RenderConfig(max_depth=4))
+    lam = np.asarray(diag.wavelengths, np.float64)
+    L = np.asarray(diag.radiance, np.float64).reshape(-1, 8)
+    grid, _ = cmf_table()
+    Le = np.interp(lam, grid, np.asarray(ss.emission[0], np.float64))
+    wl, a = pope_fry_table()
+    n = np.asarray(water_ior(lam))  # float64 Sellmeier (x64 on in tests)
+    base = Le * np.exp(-np.interp(lam, wl, a) * d)
+    for c in range(8):  # each wavelength has its own path: check it on its own
+        hit = L[:, c] > 0
+        assert hit.sum() >= 59
+        assert np.allclose(L[hit, c], base[c] / n[c] ** 2, rtol=2e-4), (lam[c], n[c])
+    far = np.abs(n / 1.33468 - 1) > 2e-3  # where the non-dispersive value is detectably off
+    assert far.any()
+    hit = L[:, far].min(axis=1) > 0
+    assert not np.allclose(L[hit][:, far], (base / 1.33468**2)[far], rtol=2e-4)
