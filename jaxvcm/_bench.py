@@ -15,6 +15,9 @@ scene file's sha256, image size, algorithm, configuration and reference seed mat
 the stored reference is at least as long as requested (`--rebuild-references` forces a
 new one). They use a seed different from the measured renders, so their samples are
 independent.
+
+`--compare-mis` (explicit vs recursive MIS seconds per pass) and `--equal-time SEC`
+(equal-time image grid) are the vertex-merging modes of `jaxvcm._bench_vm`.
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from . import _bench_vm as _vm
 
 PROG = "jaxvcm bench"
 DEFAULT_SCENES = ("pool.toml", "pool_sun.toml", "pool_sky.toml", "pool_wall.toml")
@@ -141,6 +146,25 @@ def _parser() -> argparse.ArgumentParser:
                    f"{','.join(f'{b:g}' for b in QUICK_BUDGETS)}, reference "
                    f"{QUICK_REFERENCE_TIME:g} s, throughput at the same small size")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
+    g = p.add_argument_group(
+        "vertex-merging modes (issue 4; each writes its own section of --out, replaced in "
+        "place or appended, and <out stem>_<mode>.json; --scenes, --algorithms, --size, "
+        "--max-depth and --seed apply, --quick only sets size 32, other options are "
+        "ignored)")
+    m = g.add_mutually_exclusive_group()
+    m.add_argument("--compare-mis", action="store_true",
+                   help="time mis_form explicit vs recursive per pass, the two interleaved "
+                   "pass by pass after warm-up; medians, ratio and max image difference "
+                   "(defaults: scenes pool.toml pool_sun.toml, algorithms vcm bdpt, size "
+                   f"{_vm.MIS_DEFAULT_SIZE})")
+    m.add_argument("--equal-time", type=_pos_float, metavar="SEC",
+                   help="render every (scene, algorithm) for SEC wall seconds each (compile "
+                   f"excluded); grid PNG {_vm.ET_FIGURE} next to --out and passes, paths/s "
+                   "per panel (defaults: scenes pool.toml pool_sun.toml pool_wall.toml, "
+                   f"algorithms pt bdpt ppm vcm, size {_vm.ET_DEFAULT_SIZE})")
+    g.add_argument("--mis-pairs", type=_int_ge(1), default=_vm.MIS_DEFAULT_PAIRS, metavar="N",
+                   help=f"timed pairs of passes of --compare-mis (default "
+                   f"{_vm.MIS_DEFAULT_PAIRS})")
     return p
 
 
@@ -702,14 +726,23 @@ def _settings(argv):
     from ._config import ALGORITHMS
 
     a = _parser().parse_args(argv)
-    a.algorithms = _split_list(a.algorithms or ["pt"])
+    a.mode = "compare-mis" if a.compare_mis else "equal-time" if a.equal_time else None
+    if a.mode and a.full_size:
+        raise _Usage(f"--full-size: not available with --{a.mode}")
+    if a.mode and a.throughput_only:
+        raise _Usage(f"--throughput-only: not available with --{a.mode}")
+    mode_algs = {"compare-mis": _vm.MIS_DEFAULT_ALGORITHMS,
+                 "equal-time": _vm.ET_DEFAULT_ALGORITHMS}.get(a.mode, ["pt"])
+    a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
         if alg not in ALGORITHMS:
             raise _Usage(f"unknown algorithm {alg!r}; one of {', '.join(ALGORITHMS)}")
     a.algorithms = list(dict.fromkeys(a.algorithms))
     root = repo_root()
+    mode_scenes = {"compare-mis": _vm.MIS_DEFAULT_SCENES,
+                   "equal-time": _vm.ET_DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
     names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
-                                                     for s in DEFAULT_SCENES]
+                                                     for s in mode_scenes]
     a.scene_paths = [_resolve_scene(s) for s in names]
     stems = [p.stem for p in a.scene_paths]
     if len(set(stems)) != len(stems):
@@ -717,7 +750,9 @@ def _settings(argv):
     if a.budgets is None:
         a.budgets = QUICK_BUDGETS if a.quick else DEFAULT_BUDGETS
     if a.size is None and not a.full_size:
-        a.size = QUICK_SIZE if a.quick else DEFAULT_SIZE
+        a.size = (QUICK_SIZE if a.quick else
+                  {"compare-mis": _vm.MIS_DEFAULT_SIZE,
+                   "equal-time": _vm.ET_DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
     if a.max_depth is None:
         a.max_depth = 8
     if a.reference_time is None and a.reference_passes is None:
@@ -807,6 +842,12 @@ def main(argv: list[str] | None = None) -> int:
 
     _enable_compilation_cache()  # leaves an already configured cache alone
     try:
+        if a.mode == "compare-mis":
+            _vm.run_compare_mis(a, argv, _Log(a.quiet))
+            return 0
+        if a.mode == "equal-time":
+            _vm.run_equal_time(a, argv, _Log(a.quiet))
+            return 0
         res = run(a, argv)
     except (ValueError, OSError) as e:  # e.g. a malformed scene file: one line, status 2
         print(f"jaxvcm: error: bench: {' '.join(str(e).split())}", file=sys.stderr, flush=True)

@@ -79,3 +79,51 @@ def test_bench_bad_arguments(capsys):
     assert _bench.main(["--scenes", "no/such/scene.toml"]) == 2
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 3 and all(ln.startswith("jaxvcm: error: bench: ") for ln in err)
+
+
+# ---- vertex-merging modes (--compare-mis, --equal-time): arguments and report plumbing only
+def test_bench_vm_mode_defaults():
+    a = _bench._settings(["--compare-mis"])
+    assert a.mode == "compare-mis" and a.algorithms == ["vcm", "bdpt"] and a.size == 64
+    assert [p.stem for p in a.scene_paths] == ["pool", "pool_sun"] and a.mis_pairs == 8
+    a = _bench._settings(["--equal-time", "30", "--size", "96", "--algorithms", "pt,vcm"])
+    assert a.mode == "equal-time" and a.equal_time == 30.0 and a.size == 96
+    assert a.algorithms == ["pt", "vcm"]
+    assert [p.stem for p in a.scene_paths] == ["pool", "pool_sun", "pool_wall"]
+    a = _bench._settings(["--equal-time", "2"])
+    assert a.algorithms == ["pt", "bdpt", "ppm", "vcm"] and a.size == 128
+    assert _bench._settings([]).mode is None
+
+
+def test_bench_vm_bad_arguments(capsys):
+    assert _bench.main(["--equal-time", "0"]) == 2
+    assert _bench.main(["--compare-mis", "--equal-time", "5"]) == 2
+    assert _bench.main(["--compare-mis", "--full-size"]) == 2
+    assert _bench.main(["--compare-mis", "--mis-pairs", "0"]) == 2
+    assert _bench.main(["--equal-time", "5", "--algorithms", "nope"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 5 and all(ln.startswith("jaxvcm: error: bench: ") for ln in err)
+
+
+def test_bench_vm_sections_and_figure(tmp_path):
+    import numpy as np
+
+    from jaxvcm import _bench_vm
+
+    md = tmp_path / "b.md"
+    md.write_text("# title\n\nhand-written text\n")
+    _bench_vm.upsert_section(md, "mis-forms", "first\n")
+    _bench_vm.upsert_section(md, "equal-time", "table\n")
+    _bench_vm.upsert_section(md, "mis-forms", "second\n")
+    text = md.read_text()
+    assert text.startswith("# title\n\nhand-written text\n")
+    assert "first" not in text and text.count("<!-- bench:mis-forms:begin -->") == 1
+    assert text.index("second") < text.index("table")
+
+    rng = np.random.default_rng(0)
+    row = [{"image": rng.random((8, 8, 3)) * s, "passes": 3, "seconds": 1.0}
+           for s in (1.0, 2.0)]
+    assert abs(_bench_vm.row_exposure([np.full((4, 4, 3), 4.0)]) + 2.0) < 1e-12
+    png = tmp_path / "grid.png"
+    _bench_vm.equal_time_figure(png, [row, row], ["a", "b"], ["pt", "vcm"])
+    assert png.stat().st_size > 1000
