@@ -127,3 +127,21 @@ def test_bench_vm_sections_and_figure(tmp_path):
     png = tmp_path / "grid.png"
     _bench_vm.equal_time_figure(png, [row, row], ["a", "b"], ["pt", "vcm"])
     assert png.stat().st_size > 1000
+
+
+def test_report_merge_keeps_hand_written_text_and_adds_no_marker_from_the_header():
+    # A run replaces only its own section (in place) and the generated header; the header's
+    # description of the markers must not itself parse as a section (it once did, adding an
+    # empty block on every run), and hand-written sections outside the markers survive.
+    from jaxvcm._bench import _SECTION_RE, HEADER, _merge_markdown
+
+    header = HEADER.format(json="benchmarks.json", off=1, eps=0.01, depth=8, tscene="pool",
+                           target=1.5, tcpu=2, machine="- m")
+    assert not list(_SECTION_RE.finditer(header))
+    old = _merge_markdown("", header, "a", "first A")
+    old = old + "\n## Hand-written\nkeep me\n"
+    new = _merge_markdown(old, header, "b", "B")
+    new = _merge_markdown(new, header, "a", "second A")
+    assert "keep me" in new and "second A" in new and "first A" not in new
+    assert [m.group("tag") for m in _SECTION_RE.finditer(new)] == ["a", "b"]
+    assert new.count("# jaxvcm benchmarks") == 1
