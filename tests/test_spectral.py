@@ -76,6 +76,19 @@ def test_water_data(fn, lam, expected, tol):
     assert abs(float(fn(np.float64(lam))) - expected) <= tol
 
 
+def test_jerlov_table():
+    # Jerlov 1976 K_d as shipped: 10 types x 7 wavelengths; spot values from the table, and
+    # every type's K_d increases from oceanic I to coastal 9 at 400 nm (the yellow substance)
+    from jaxvcm._water_optics import jerlov_table
+
+    names, wl, kd = jerlov_table()
+    assert names == ("I", "IA", "IB", "II", "III", "C1", "C3", "C5", "C7", "C9")
+    assert np.array_equal(wl, np.arange(400, 701, 50))
+    assert kd.shape == (7, 10)
+    assert kd[1, 0] == 0.019 and kd[3, 4] == 0.120 and kd[6, 9] == 1.10
+    assert np.all(np.diff(kd[0]) > 0)
+
+
 def test_parametric_water_model_terms():
     # sigma_a(440) = a_w(440) + a_cdom e^0 + a_flat = 0.00635 + 0.1 + 0.02;
     # sigma_a(540) = 0.0474 + 0.1 e^(-0.015 * 100) + 0.02 = 0.0474 + 0.022313 + 0.02;
@@ -109,6 +122,15 @@ def test_upsampling_keeps_rgb():
     rgb = np.array([0.8, 0.3, 0.1])
     xyz = np.trapezoid((le * upsample_reflectance(rgb))[:, None] * cmf, grid, axis=0)
     assert np.allclose(xyz_to_srgb(xyz), rgb, atol=2e-3)
+    # the blackbody sun option: Planck's shape (5778 K) with Y = 1 for a white light; the
+    # ratio of spectral radiances at 450 and 650 nm is Planck's, (650/450)^5 (e^(c2/(650 T))
+    # - 1) / (e^(c2/(450 T)) - 1) with c2 = 0.014388 m K (Mallett's white is flat to 1e-5)
+    bb = upsample_emission([1.0, 1.0, 1.0], "blackbody", 5778.0)
+    assert abs(np.trapezoid(bb * cmf[:, 1], grid) - 1.0) < 1e-12
+    c2, T = 0.014388, 5778.0
+    planck = (650 / 450) ** 5 * np.expm1(c2 / (650e-9 * T)) / np.expm1(c2 / (450e-9 * T))
+    i450, i650 = int(np.argmin(np.abs(grid - 450))), int(np.argmin(np.abs(grid - 650)))
+    assert abs(bb[i450] / bb[i650] / planck - 1) < 1e-4
     # a coloured light keeps the luminance of its RGB colour (sRGB Y row)
     c = np.array([1.0, 0.8, 0.5])
     y = np.trapezoid(upsample_emission(c) * cmf[:, 1], grid)
