@@ -170,6 +170,7 @@ class SpectralScene(eqx.Module):
     phase_kind: int = eqx.field(static=True, default=PHASE_WATER)
     phase_b: float = eqx.field(static=True, default=PURE_WATER_PHASE_B)
     dispersion: bool = eqx.field(static=True, default=False)
+    phase_from_scene: bool = eqx.field(static=True, default=False)  # keep the scene's g, b
 
     def ior_at(self, lam: Array) -> Array:
         """The water's index at lam: `ior` without dispersion; with dispersion the
@@ -193,8 +194,11 @@ class SpectralScene(eqx.Module):
         if w.enabled:
             sig_a = jnp.maximum(self.water.sigma_a(lam).astype(dt), 0.0)
             sig_s = jnp.maximum(self.water.sigma_s(lam).astype(dt), 0.0)
-            g = self.water.g.astype(dt) if self.phase_kind == PHASE_HG else w.g
-            b = jnp.asarray(self.phase_b, dt) if self.phase_kind == PHASE_WATER else w.b
+            if self.phase_from_scene:
+                g, b = w.g, w.b
+            else:
+                g = self.water.g.astype(dt) if self.phase_kind == PHASE_HG else w.g
+                b = jnp.asarray(self.phase_b, dt) if self.phase_kind == PHASE_WATER else w.b
             mat_ior = s.materials.ior.at[w.mat].set(ior)
         else:
             sig_a = sig_s = jnp.zeros((C,), dt)
@@ -253,7 +257,7 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
     A = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype=dt)  # noqa: E731
     water = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dt) if eqx.is_array(x) else x, water)
     return SpectralScene(scene, water, A(albedo), A(emission), A(_tables()["cmf"]), A(n),
-                         n_wavelengths, kind, pb, bool(dispersion))
+                         n_wavelengths, kind, pb, bool(dispersion), phase == "scene")
 
 
 class SpectralDiagnostics(eqx.Module):

@@ -293,6 +293,13 @@ def test_spectral_scattering_furnace():
     sc = ss.at_wavelengths(jnp.asarray([380.0, 720.0], jnp.float32))
     assert np.allclose(np.asarray(sc.water.sigma_s), [0.3 * (380 / 550) ** -2,
                                                       0.3 * (720 / 550) ** -2], rtol=1e-5)
+    assert abs(float(sc.water.g) - 0.9) < 1e-6
+    # phase="scene" keeps the RGB scene's phase and its g instead (here HG, g = -0.3)
+    keep = spectral_scene(jaxvcm.scene_from_dict(A.medium_furnace((1.0,) * 3, (0.1,) * 3,
+                                                                   phase="hg", g=-0.3)),
+                          WaterModel(b_p=0.3, g=0.9), phase="scene")
+    kc = keep.at_wavelengths(jnp.asarray([500.0], jnp.float32))
+    assert kc.water.phase_kind == PHASE_HG and abs(float(kc.water.g) + 0.3) < 1e-6
     _, lam, rad, bad = spectral_stats(ss, RenderConfig(max_depth=32, rr_depth=100), passes=8)
     assert bad == 0
     grid, _ = cmf_table()
