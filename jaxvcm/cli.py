@@ -1,4 +1,4 @@
-"""Command line: `jaxvcm render | info | export | bench`.
+"""Command line: `jaxvcm render | info | export | bench | fit`.
 
 Errors in the scene file or the arguments are reported as ONE line on stderr,
 `jaxvcm: error: <message>`, with exit status 2 and no traceback. An interrupted render
@@ -95,6 +95,12 @@ def _parser() -> argparse.ArgumentParser:
     e = sub.add_parser("export", help="tessellate a scene to a mesh file (.glb, .ply, .obj)")
     e.add_argument("scene", metavar="SCENE")
     e.add_argument("out", metavar="OUT", help="OUT.glb, OUT.ply or OUT.obj")
+
+    f = sub.add_parser("fit", help="fit water coefficients to target colours (fit.json + "
+                       "fit.png); config format: jaxvcm/_fit.py CONFIG_DOC")
+    f.add_argument("config", metavar="CONFIG", help="fit config (.toml)")
+    f.add_argument("--out", metavar="DIR", help="output directory (default out/<config>)")
+    f.add_argument("--quiet", action="store_true", help="no per-step lines")
 
     sub.add_parser("bench", help="benchmarks (arguments are passed to jaxvcm._bench)",
                    add_help=False)
@@ -258,6 +264,22 @@ def _cmd_export(a) -> int:
     return 0
 
 
+def _cmd_fit(a) -> int:
+    from . import _fit
+
+    kw = _fit.load_fit_config(a.config)  # validate everything before any rendering
+    out = a.out or os.path.join("out", os.path.splitext(os.path.basename(a.config))[0] or "fit")
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ValueError(f"--out: {out!r} exists and is not a directory")
+    _enable_compilation_cache()
+    res = _fit.fit(**kw, progress=not a.quiet)
+    jp, pp = _fit.write_outputs(res, out)
+    print(res.summary())
+    print(jp)
+    print(pp)
+    return 0
+
+
 def _cmd_bench(rest: list[str]) -> int:
     import importlib
 
@@ -284,6 +306,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_info(a)
         if a.command == "export":
             return _cmd_export(a)
+        if a.command == "fit":
+            return _cmd_fit(a)
         return _err(f"unknown command {a.command!r}")  # pragma: no cover
     except _UsageError as e:
         return _err(e)
