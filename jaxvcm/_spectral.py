@@ -7,13 +7,15 @@ sigma_s) as C independent channels and never assumes C = 3. A spectral pass ther
    C - 1 rotations of it by multiples of 340 / C nm (wrapping around the range;
    Wilkie, Nawaz, Droske, Weidlich & Hanika 2014, "Hero wavelength spectral sampling").
    Each lambda_c is marginally uniform, p(lambda_c) = 1 / 340 nm^-1, and together they
-   stratify the range;
+   stratify the range. One hero per pass means every pixel of a pass sees the same C
+   wavelengths: colour noise is correlated across the image within a pass and averages
+   out over passes (each pass is unbiased on its own);
 2. instantiates the RGB scene with every spectral quantity evaluated at these C
    wavelengths (`SpectralScene.at_wavelengths`): albedo spectra and light spectra from
    tables precomputed at scene load, water sigma_a = a_w + a_x and sigma_s = b_w + b_p from
    `_water_optics.WaterModel`, the CIE 1931 2 degree colour-matching functions;
 3. renders with the unchanged `render_pass` (C channels = C wavelengths; paths are shared
-   by all wavelengths, which is exact because nothing in the core is dispersive);
+   by all wavelengths, which is exact with one water index for all of them);
 4. converts to CIE 1931 XYZ with the estimator
        XYZ = sum_c L(lambda_c) cmf(lambda_c) / (C p(lambda_c)) = (340 / C) sum_c L cmf,
    an unbiased estimate of integral_380^720 L(lambda) cmf(lambda) dlambda for every pass.
@@ -32,7 +34,7 @@ Upsampling at scene load (`spectral_scene`), all with colour-science:
   sRGB ~ (1, 1, 1) on the film.
 
 Water: `WaterModel` (pure water + CDOM-like and flat absorption + power-law particle
-scattering). One refractive index for the whole scene (not dispersive): by default the
+scattering). One refractive index for the whole scene unless `dispersion=True`: by default the
 Daimon & Masumura n(550 nm) = 1.33468; `ior="scene"` keeps the RGB scene's value and a
 number sets it. Phase function: HG with the model's g when b_p > 0, the pure-water phase
 (1 + 0.925 cos^2) otherwise (`phase="scene"` keeps the RGB scene's phase).
