@@ -6,7 +6,7 @@ Pure water (tables in `jaxvcm/data/`, each file cites its source):
 
 * absorption a_w(lambda): Pope & Fry 1997, 380-725 nm every 5 nm, linearly interpolated
   (`pure_water_absorption`; clamped to the end values outside the table);
-* scattering b_w(lambda): Zhang, Hu & He 2009 (S = 0, 20 C) through their power-law fit
+* scattering b_w(lambda): Zhang, Hu & He 2009 (S = 0, 20 C) through a power-law fit to them,
   b_w = 0.00196 (lambda / 500)^-4.18, which passes within 1.2% of every tabulated value from
   400 to 700 nm and is smooth beyond (`pure_water_scattering`); its phase function is
   3 (1 + p cos^2) / (4 pi (3 + p)) with p = 0.925 (`PURE_WATER_PHASE_B`);
