@@ -57,6 +57,7 @@ from ._render import pass_key, render_pass
 from ._scene import Scene
 
 SPACES = ("srgb", "xyz", "lab")
+FREE = ("both", "sigma_a", "sigma_s")  # which coefficients a fit adjusts
 
 # ------------------------------------------------------------------ colour conversions
 # CIE constants of CIELAB (CIE 15:2004): epsilon = (6/29)^3, kappa = (29/3)^3.
@@ -158,7 +159,7 @@ class FitResult:
     theta: np.ndarray  # [2C] ln sigma_a, ln sigma_s
     cov: np.ndarray  # [2C, 2C] covariance of theta, (J^T J)^-1 s^2
     cov_unscaled: np.ndarray  # (J^T J)^-1 (the stated uncertainties taken at face value)
-    jacobian: np.ndarray  # [m, 2C] d residual / d theta at the solution
+    jacobian: np.ndarray  # [m, n] d residual / d (free part of theta) at the solution
     residuals: np.ndarray  # [m] (rendered - target) / uncertainty at the solution
     space: str
     regions: list  # [Region]
@@ -347,7 +348,7 @@ def default_uncertainty(target, space: str) -> np.ndarray:
 
 def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
         config: RenderConfig | None = None, passes: int = 16, seed: int = 0,
-        init_sigma_a=None, init_sigma_s=None, max_steps: int = 40, rtol: float = 1e-4,
+        init_sigma_a=None, init_sigma_s=None, free: str = "both", max_steps: int = 40, rtol: float = 1e-4,
         atol: float = 1e-5, truth: dict | None = None, progress: bool = False) -> FitResult:
     """Fit the water's sigma_a, sigma_s (shared by all `scenes`) to the region targets.
 
@@ -355,7 +356,8 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
     index or name. space: colour space of targets and residuals ("srgb" = linear sRGB,
     "xyz", "lab"). config: render configuration (default PT, max_depth 6). passes, seed:
     the fixed keys pass_key(seed, i), i < passes, used at every iterate. init_*: the
-    initial guess (default: the first scene's water). rtol/atol: optimistix's Cauchy
+    initial guess (default: the first scene's water). free: "both" (6 parameters), or
+    "sigma_a" / "sigma_s" alone (the other stays at its initial value). rtol/atol: optimistix's Cauchy
     termination on theta = ln sigma and on the loss. See the module docstring."""
     import optimistix as optx
 
@@ -376,6 +378,10 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
         raise ValueError("init: sigma_a and sigma_s must be > 0 in every channel "
                          "(the fit works in log space)")
     dtype = w0.sigma_a.dtype
+    # the solver's dtype: optimistix builds its damping terms in the default float type,
+    # which is float64 under jax_enable_x64; parameters and residuals follow it (the
+    # renderer stays in the scene's dtype)
+    pdtype = jnp.result_type(float)
     targets = np.array([r.target for r in regions], np.float64)
     unc = np.array([default_uncertainty(r.target, space) if r.uncertainty is None
                     else r.uncertainty for r in regions], np.float64)
@@ -383,10 +389,17 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
     tgt = jnp.asarray(targets, dtype)
     inv_unc = jnp.asarray(1.0 / unc, dtype)
 
-    def residual_fn(theta, args):
+    if free not in FREE:
+        raise ValueError(f"free: unknown {free!r}; one of {', '.join(FREE)}")
+    free_idx = {"both": np.arange(2 * C), "sigma_a": np.arange(C),
+                "sigma_s": np.arange(C, 2 * C)}[free]
+    theta_full0 = jnp.asarray(np.concatenate([np.log(sa0), np.log(ss0)]), pdtype)
+
+    def residual_fn(y, args):
+        theta = theta_full0.at[free_idx].set(y)  # the fixed ones stay at their initial value
         rgb, overflow = colours(theta)
         r = (to_space(rgb, space) - tgt) * inv_unc
-        return r.reshape(-1), overflow
+        return r.reshape(-1).astype(pdtype), overflow
 
     history: list[dict] = []
 
@@ -406,31 +419,35 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
                                               "loss_last_accepted_step", "step_size", "y")})
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, verbose=verbose)
-    theta0 = jnp.asarray(np.concatenate([np.log(sa0), np.log(ss0)]), dtype)
+    theta0 = theta_full0[free_idx]
 
     @jax.jit
     def solve(theta0):
         sol = optx.least_squares(residual_fn, solver, theta0, has_aux=True,
                                  max_steps=max_steps, throw=False)
         r0, _ = residual_fn(theta0, None)
-        rgb, _ = colours(sol.value)
+        # residuals and Jacobian at the last accepted iterate (= sol.value), from the
+        # solver's state: no further copies of the renderer in this program
+        r1 = sol.state.f_info.residual
         J = sol.state.f_info.jac.as_matrix()
-        return sol.value, sol.result, sol.stats["num_steps"], sol.aux, r0, J, rgb
+        return sol.value, sol.result, sol.stats["num_steps"], sol.aux, r0, J, r1
 
     t1 = _time.perf_counter()
-    theta, result, nsteps, overflow, r0, J, rgb_fit = solve(theta0)
-    theta = np.asarray(jax.block_until_ready(theta), np.float64)
+    y, result, nsteps, overflow, r0, J, r1 = solve(theta0)
+    theta = np.asarray(theta_full0, np.float64).copy()
+    theta[free_idx] = np.asarray(jax.block_until_ready(y), np.float64)
     solve_seconds = _time.perf_counter() - t1
     if bool(overflow):
         raise RuntimeError("fit: the merging gather overflowed its capacity; raise "
                            "RenderConfig.merge_capacity")
     rgb0 = np.asarray(r0, np.float64).reshape(-1, 3) * unc + targets  # initial, in `space`
-    fitted = np.asarray(to_space(rgb_fit, space), np.float64)
-    res = ((fitted - targets) / unc).reshape(-1)
+    res = np.asarray(r1, np.float64)
+    fitted = res.reshape(-1, 3) * unc + targets
     J = np.asarray(J, np.float64)
     m, n = J.shape
     JtJ = J.T @ J
-    cov_u = np.linalg.pinv(JtJ)
+    cov_u = np.zeros((2 * C, 2 * C))  # fixed parameters: zero rows and columns
+    cov_u[np.ix_(free_idx, free_idx)] = np.linalg.pinv(JtJ)
     s2 = float(res @ res) / max(m - n, 1)
     cov = cov_u * s2
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
@@ -446,7 +463,7 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
         wall_seconds=_time.perf_counter() - t0, solve_seconds=solve_seconds,
         history=history, init_sigma_a=sa0, init_sigma_s=ss0,
         config={"render": dataclasses.asdict(config), "passes": passes, "seed": seed,
-                "max_steps": max_steps, "rtol": rtol, "atol": atol,
+                "max_steps": max_steps, "rtol": rtol, "atol": atol, "free": free,
                 "scenes": names, "size": [[s.camera.width, s.camera.height] for s in scenes]},
         truth=truth,
     )
@@ -534,7 +551,8 @@ CONFIG_DOC = """Fit config (TOML), for `jaxvcm fit CONFIG [--out DIR]`:
   space = "srgb"                      # targets' colour space: srgb (linear) | xyz | lab
   [render]    algorithm = "pt", max_depth = 6, rr_depth, radius, passes = 16, seed = 0,
               width, height           (image size of every scene; default: the files')
-  [solver]    max_steps = 40, rtol = 1e-4, atol = 1e-5
+  [solver]    max_steps = 40, rtol = 1e-4, atol = 1e-5,
+              free = "both" | "sigma_a" | "sigma_s"   (which coefficients are fitted)
   [init]      sigma_a, sigma_s        (spectra; default: the first scene's water)
   [truth]     sigma_a, sigma_s        (optional; only reported: relative errors)
   [scenes.NAME]  file = "scene.toml"  (relative to the config file)
@@ -600,7 +618,8 @@ def load_fit_config(path) -> dict:
     width = ctx.integer(r["width"], "render.width") if "width" in r else None
     height = ctx.integer(r["height"], "render.height") if "height" in r else None
     s = doc.get("solver", {})
-    ctx.table(s, {"max_steps", "rtol", "atol"}, set(), "solver")
+    ctx.table(s, {"max_steps", "rtol", "atol", "free"}, set(), "solver")
+    free = ctx.string(s.get("free", "both"), "solver.free", FREE)
     max_steps = ctx.integer(s.get("max_steps", 40), "solver.max_steps")
     rtol = ctx.number(s.get("rtol", 1e-4), "solver.rtol", positive=True)
     atol = ctx.number(s.get("atol", 1e-5), "solver.atol", positive=True)
@@ -682,4 +701,4 @@ def load_fit_config(path) -> dict:
         ctx.fail("regions", "targets must be finite")
     return dict(scenes=scenes, regions=regions, space=space, config=config, passes=passes,
                 seed=seed, init_sigma_a=init.get("sigma_a"), init_sigma_s=init.get("sigma_s"),
-                max_steps=max_steps, rtol=rtol, atol=atol, truth=truth)
+                free=free, max_steps=max_steps, rtol=rtol, atol=atol, truth=truth)
