@@ -71,17 +71,18 @@ def test_sphere_furnace_all_algorithms_per_path_length(alg, spp):
 @pytest.mark.parametrize("alg", ["pt", "bdpt"])
 def test_medium_furnace_bidirectional(alg):
     # Pure-scattering chromatic water box with emitting walls: radiance Le everywhere
-    # (truncation at D = 24: P(no wall within 24 segments) <= 0.58^24 = 2e-6 relative).
+    # (truncation at D = 16: P(no wall within 16 segments) <= 0.58^16 = 1.7e-4 relative,
+    # a fifth of the standard error here; the test tolerates it via rel=3e-4).
     # Light tracing alone is not used here: from medium vertices next to the camera its
     # splats carry 1/d^2 with infinite variance (standard errors are not trustworthy);
     # inside BDPT the MIS weights tame that term.
     Le = np.array([1.0, 2.0, 0.5])
     scene = jaxvcm.scene_from_dict(A.medium_furnace(Le, (0.1, 0.25, 0.5), w=12, h=12))
-    _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=24,
+    _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=16,
                                                          rr_depth=100), passes=8)
     assert bad == 0
     m, s = A.pooled(imgs)
-    assert_close(m, s, Le, what=f"medium furnace {alg}")
+    assert_close(m, s, Le, rel=3e-4, what=f"medium furnace {alg}")
 
 
 def test_technique_images_sum_to_the_bdpt_image():
@@ -232,11 +233,12 @@ HARD = {
 }
 
 
-@pytest.mark.parametrize("alg", ["lt", "bdpt", "vcm-r1e-06", "vcm-r0.5"])
+@pytest.mark.parametrize("alg", ["lt", "bdpt", "vcm-r0.5"])
 @pytest.mark.parametrize("case", sorted(HARD))
 def test_hard_cases_finite_bidirectional(case, alg):
-    # vcm at a vanishing (1e-6 R_bound) and a huge (0.5 R_bound) merging radius: eta -> 0
-    # and eta -> large push the MIS weights to their limits; every value stays finite.
+    # vcm at a huge (0.5 R_bound) merging radius: every camera vertex merges with most
+    # photons and eta is large, pushing the MIS weights to their limit; every value stays
+    # finite (a vanishing radius is tested in test_merge::test_merging_extreme_radii).
     with open("scenes/pool.toml", "rb") as f:
         d = tomllib.load(f)
     d["camera"].update(width=10, height=10)
