@@ -237,3 +237,19 @@ def test_missing_config_file(tmp_path, capsys):
     rc = main(["fit", str(tmp_path / "none.toml")])
     _, err = capsys.readouterr()
     assert rc == 2 and len(err.splitlines()) == 1 and "file not found" in err
+
+
+# ------------------------------------------------------------------ spectral: arguments
+def test_fit_spectral_rejects_bad_arguments():
+    """Validation happens before any rendering (no compilation here). The spectral
+    recovery itself is fits/recover_spectral/run.py (not a test: ~70 s of compilation
+    would push this file past its time budget)."""
+    scene = jaxvcm.load_scene(POOL_SKY, width=8, height=8)
+    sp = jaxvcm.spectral_scene(scene, jaxvcm.WaterModel(b_p=0.1), n_wavelengths=2)
+    reg = [Region("a", 0, (0, 0, 4, 4), (0.1, 0.1, 0.1))]
+    with pytest.raises(ValueError, match="params: unknown 'sigma_a'"):
+        jaxvcm.fit_spectral(sp, reg, ["sigma_a"])
+    with pytest.raises(ValueError, match="init: every fitted parameter must be > 0"):
+        jaxvcm.fit_spectral(sp, reg, ["a_cdom"])  # pure water: a_cdom = 0
+    with pytest.raises(ValueError, match=r"regions.a.rect"):
+        jaxvcm.fit_spectral(sp, [Region("a", 0, (0, 0, 9, 4), (0.1, 0.1, 0.1))], ["b_p"])
