@@ -291,15 +291,19 @@ def region_colours_fn(scenes: Sequence[Scene], regions: Sequence[Region], config
     return fn
 
 
+def _named(items, cls) -> tuple[list, list[str]]:
+    """One item of type `cls`, a list, or a name -> item dict: (items, names)."""
+    if isinstance(items, cls):
+        items = [items]
+    if isinstance(items, dict):
+        names = list(items)
+        return [items[k] for k in names], names
+    items = list(items)
+    return items, [str(i) for i in range(len(items))]
+
+
 def _resolve(scenes, regions) -> tuple[list[Scene], list[Region], list[str]]:
-    if isinstance(scenes, Scene):
-        scenes = [scenes]
-    if isinstance(scenes, dict):
-        names = list(scenes)
-        scenes = [scenes[k] for k in names]
-    else:
-        scenes = list(scenes)
-        names = [str(i) for i in range(len(scenes))]
+    scenes, names = _named(scenes, Scene)
     if not scenes:
         raise ValueError("fit: no scenes")
     if not regions:

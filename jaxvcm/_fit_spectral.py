@@ -124,14 +124,9 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
     import optimistix as optx
 
     t0 = _time.perf_counter()
-    if isinstance(spectral, SpectralScene):
-        spectral = [spectral]
-    if isinstance(spectral, dict):
-        snames = list(spectral)
-        spectral = [spectral[k] for k in snames]
-    else:
-        spectral = list(spectral)
-        snames = [str(i) for i in range(len(spectral))]
+    from ._fit import _named
+
+    spectral, snames = _named(spectral, SpectralScene)
     for p in params:
         if p not in PARAMS:
             raise ValueError(f"params: unknown {p!r}; one of {', '.join(PARAMS)}")
