@@ -320,5 +320,19 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else (0 if e.code is None else _err(e.code))
 
 
+def entry() -> None:
+    """Process entry point (console script, `python -m jaxvcm`, `python -m jaxvcm.cli`).
+    After an interrupt (status 130) the outputs are already complete on disk, so the
+    process leaves at once instead of tearing down the interpreter: a SIGINT that lands
+    while XLA worker threads are busy (a pass in flight, a compilation) could otherwise
+    keep the process alive for as long as they take."""
+    rc = main()
+    if rc == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.exit(rc)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

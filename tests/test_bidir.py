@@ -138,7 +138,7 @@ def test_pt_bdpt_and_vcm_agree_on_pool(name):
     # the passes) is far below these standard errors (tests/test_merge.py measures the bias
     # against radius on a scene built to show it).
     assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt", "vcm"), 5, seed=11,
-                            what=name)
+                            passes=16, what=name)
 
 
 def test_lt_and_bdpt_agree_on_directly_lit_wall():
@@ -155,7 +155,7 @@ def test_lt_and_bdpt_agree_on_sun_caustics_from_under_water():
     scene = pool_scene("pool_sun", 16, 16, position=[0.3, -0.6, 0.5], target=[-0.2, -1.2, -0.4],
                        fov=60)
     lt = assert_algorithms_agree(scene, ("lt", "bdpt", "vcm"), 4, seed=31, blocks=2,
-                                 what="pool_sun under water")
+                                 passes=16, what="pool_sun under water")
     assert np.all(lt > 0)
 
 

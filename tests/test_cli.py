@@ -245,7 +245,12 @@ def test_render_sigint_exits_130_with_snapshot(tmp_path):
         _wait_for(proc, out, log)
         time.sleep(1.0)
         proc.send_signal(signal.SIGINT)
-        rc = proc.wait(timeout=60)
+        try:
+            rc = proc.wait(timeout=150)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"no exit 150 s after SIGINT: {log.read_text()}")
     finally:
         if proc.poll() is None:
             proc.kill()
