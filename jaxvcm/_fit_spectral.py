@@ -1,23 +1,31 @@
-"""Spectral-mode fitting: the `WaterModel` parameters from region colours (first step).
+"""Spectral-mode fitting: the `WaterModel` parameters from region colours.
 
 Same problem, solver and report as `_fit.fit` (see its docstring), but the scenes are
 `SpectralScene`s rendered with `render_pass_spectral` (CIE XYZ film) and the parameters
-are leaves of the water model, fitted in log space (all of a_cdom, a_flat, b_p, n_p, S are
-positive in practice; a parameter at exactly 0 cannot be fitted in log space, start it
-small instead):
+are leaves of the water model:
 
-    sigma_a(lambda) = a_w(lambda) + a_cdom exp(-S (lambda - 440)) + a_flat
+    sigma_a(lambda) = a_w_scale a_w(lambda) + a_cdom exp(-S (lambda - 440)) + a_flat
     sigma_s(lambda) = b_w(lambda) + b_p (lambda / 550)^-n_p
 
+Parameterisation: by default every fitted parameter is fitted in log space (positive by
+construction; a parameter at exactly 0 cannot be fitted in log space, start it small or
+fit it linearly). Names listed in `linear` are fitted as they are, unconstrained: use it for
+terms whose true value may be 0 (a_cdom, a_flat of pure water), where a log fit could
+only creep towards -infinity and its Jacobian uncertainty would be meaningless. A
+negative total sigma_a is clamped to 0 by the renderer (`SpectralScene.at_wavelengths`).
+
 Common random numbers include the wavelengths: every pass draws its hero wavelength from
-its own key, so fixed keys fix the wavelengths too. Not done: a CLI, figures, the issue's
-fits 2 and 3 (literature-spectra targets, Jerlov types); `fits/recover_spectral/` is a
-synthetic recovery only.
+its own key, so fixed keys fix the wavelengths too. Scenes with the same static structure
+(size, shapes, n_wavelengths, ...) are stacked and rendered by one `vmap` (one compiled
+renderer for all of them, as in the RGB fit).
+
+Config files (`jaxvcm fit CONFIG` with `mode = "spectral"`): see `_fit.CONFIG_DOC`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import time as _time
 from typing import Sequence
 
@@ -27,11 +35,11 @@ import numpy as np
 
 from ._config import RenderConfig
 from ._fit import (Region, _colour_constants, _result_name, default_uncertainty, delta_e2000,
-                   xyz_to_lab)
+                   to_srgb_host, xyz_to_lab)
 from ._render import pass_key
 from ._spectral import SpectralScene, render_pass_spectral
 
-PARAMS = ("a_cdom", "S", "a_flat", "b_p", "n_p", "g")
+PARAMS = ("a_cdom", "S", "a_flat", "b_p", "n_p", "g", "a_w_scale")  # fittable WaterModel leaves
 
 
 @dataclasses.dataclass
@@ -39,7 +47,7 @@ class SpectralFitResult:
     params: dict  # name -> fitted value
     params_sd: dict  # name -> 1 sigma (scaled by the residual variance)
     init: dict
-    cov: np.ndarray  # of the log parameters
+    cov: np.ndarray  # of theta (ln p for log-space parameters, p for linear ones)
     cov_unscaled: np.ndarray
     space: str
     regions: list
@@ -54,6 +62,12 @@ class SpectralFitResult:
     history: list
     config: dict
     truth: dict | None = None
+    linear: tuple = ()  # names fitted in linear space
+    theta: np.ndarray | None = None  # the fitted theta
+    jacobian: np.ndarray | None = None  # d residual / d theta at the solution
+    residuals: np.ndarray | None = None  # (rendered - target) / uncertainty
+    solve_seconds: float = 0.0
+    water: dict | None = None  # the fitted WaterModel's fields (for plots and reports)
 
     def to_dict(self) -> dict:
         def f(x):
@@ -62,6 +76,10 @@ class SpectralFitResult:
         d = {"params": {k: float(v) for k, v in self.params.items()},
              "params_sd": {k: float(v) for k, v in self.params_sd.items()},
              "init": {k: float(v) for k, v in self.init.items()},
+             "linear": list(self.linear),
+             "theta": None if self.theta is None else f(self.theta),
+             # cov_log keeps its historical name: the covariance of theta (log for the
+             # log-space parameters, linear for `linear` ones)
              "cov_log": f(self.cov), "cov_log_unscaled": f(self.cov_unscaled),
              "space": self.space,
              "regions": [{"name": r.name, "scene": r.scene, "rect": list(r.rect),
@@ -70,44 +88,103 @@ class SpectralFitResult:
                           "delta_e2000": float(self.delta_e2000[i]),
                           "delta_e2000_initial": float(self.delta_e2000_initial[i])}
                          for i, r in enumerate(self.regions)],
+             "delta_e2000_max": float(np.max(self.delta_e2000)),
+             "delta_e2000_mean": float(np.mean(self.delta_e2000)),
              "iterations": self.iterations, "result": self.result,
-             "wall_seconds": round(self.wall_seconds, 3), "history": self.history,
+             "wall_seconds": round(self.wall_seconds, 3),
+             "solve_seconds": round(self.solve_seconds, 3), "history": self.history,
              "config": self.config}
+        if self.residuals is not None:
+            d["residual_rms"] = float(np.sqrt(np.mean(self.residuals ** 2)))
+        if self.water is not None:
+            d["water"] = {k: (v if isinstance(v, bool) else float(v))
+                          for k, v in self.water.items()}
         if self.truth:
             d["truth"] = {k: float(v) for k, v in self.truth.items()}
-            d["rel_error"] = {k: float(self.params[k] / v - 1) for k, v in self.truth.items()
+            d["abs_error"] = {k: float(self.params[k] - v) for k, v in self.truth.items()
                               if k in self.params}
+            d["rel_error"] = {k: float(self.params[k] / v - 1) for k, v in self.truth.items()
+                              if k in self.params and v != 0}
+            d["error_in_sd"] = {k: float((self.params[k] - v) / self.params_sd[k])
+                                for k, v in self.truth.items()
+                                if k in self.params and self.params_sd[k] > 0}
         return d
+
+    def summary(self) -> str:
+        ps = ", ".join(f"{k} = {v:.4g} ± {self.params_sd[k]:.2g}"
+                       for k, v in self.params.items())
+        return "\n".join([
+            ps,
+            f"dE2000 max {np.max(self.delta_e2000):.3g}, mean {np.mean(self.delta_e2000):.3g} "
+            f"(initial max {np.max(self.delta_e2000_initial):.3g}); {self.iterations} steps, "
+            f"{self.result}; {self.wall_seconds:.1f} s"])
+
+
+def _spectral_groups(spectral: Sequence[SpectralScene]):
+    """Spectral scenes with equal static structure -> (indices, stacked scene)."""
+    groups: list[tuple[list[int], list[SpectralScene]]] = []
+    for i, sp in enumerate(spectral):
+        sp = dataclasses.replace(sp, scene=dataclasses.replace(sp.scene, name="fit"))
+        st = jax.tree.structure(sp)
+        shapes = [(a.shape, a.dtype) for a in jax.tree.leaves(sp)]
+        for idx, members in groups:
+            m0 = members[0]
+            if jax.tree.structure(m0) == st and shapes == [(a.shape, a.dtype)
+                                                          for a in jax.tree.leaves(m0)]:
+                idx.append(i)
+                members.append(sp)
+                break
+        else:
+            groups.append(([i], [sp]))
+    return [(idx, jax.tree.map(lambda *a: jnp.stack(a), *members)) for idx, members in groups]
+
+
+def _to_values(theta, names, linear):
+    """theta [n] -> parameter values [n]: exp for log-space names, identity for linear."""
+    lin = jnp.asarray([n in linear for n in names])
+    return jnp.where(lin, theta, jnp.exp(jnp.where(lin, 0.0, theta)))
 
 
 def spectral_region_colours_fn(spectral: Sequence[SpectralScene], regions: Sequence[Region],
                                names: Sequence[str], config: RenderConfig, passes: int,
-                               seed: int):
-    """log-parameters [n] -> region XYZ [R, 3] (and the merge overflow flag); fixed keys."""
+                               seed: int, linear: Sequence[str] = ()):
+    """theta [n] -> (region XYZ [R, 3], merge overflow flag); fixed keys pass_key(seed, i).
+    theta_j = ln p_j, or p_j itself for names in `linear`."""
     keys = jnp.stack([pass_key(seed, i) for i in range(passes)])
     idx = jnp.arange(passes, dtype=jnp.int32)
+    groups = _spectral_groups(spectral)
+    where = {}
+    for g, (members, _) in enumerate(groups):
+        for p, i in enumerate(members):
+            where[i] = (g, p)
+    linear = tuple(linear)
 
     def fn(theta):
+        vals = _to_values(theta, list(names), linear)
         images = []
         overflow = jnp.zeros((), bool)
-        for sp in spectral:
-            dt = sp.scene.bounds.dtype
-            water = sp.water
-            for j, name in enumerate(names):
-                water = dataclasses.replace(water, **{name: jnp.exp(theta[j]).astype(dt)})
-            sp1 = dataclasses.replace(sp, water=water)
+        for _, stacked in groups:
+            def passes_of(sp):
+                dt = sp.scene.bounds.dtype
+                water = dataclasses.replace(
+                    sp.water, **{n: vals[j].astype(dt) for j, n in enumerate(names)})
+                sp1 = dataclasses.replace(sp, water=water)
 
-            def one(key, i, sp1=sp1):
-                xyz, diag = render_pass_spectral(sp1, key, config, i)
-                return xyz, diag.core.merge_overflow
+                def one(key, i):
+                    xyz, diag = render_pass_spectral(sp1, key, config, i)
+                    return xyz, diag.core.merge_overflow
 
-            imgs, ov = jax.vmap(one)(keys, idx)
-            images.append(jnp.mean(imgs, axis=0))
+                imgs, ov = jax.vmap(one)(keys, idx)
+                return jnp.mean(imgs, axis=0), jnp.any(ov)
+
+            imgs, ov = jax.vmap(passes_of)(stacked)
+            images.append(imgs)
             overflow = overflow | jnp.any(ov)
         cols = []
         for r in regions:
+            g, p = where[r.scene]
             x0, y0, x1, y1 = r.rect
-            cols.append(jnp.mean(images[r.scene][y0:y1, x0:x1], axis=(0, 1)))
+            cols.append(jnp.mean(images[g][p, y0:y1, x0:x1], axis=(0, 1)))
         return jnp.stack(cols), overflow
 
     return fn
@@ -117,36 +194,56 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
                  *, space: str = "xyz", init: dict | None = None,
                  config: RenderConfig | None = None, passes: int = 16, seed: int = 0,
                  max_steps: int = 40, rtol: float = 1e-3, atol: float = 1e-3,
-                 truth: dict | None = None) -> SpectralFitResult:
+                 truth: dict | None = None, linear: Sequence[str] = (),
+                 progress: bool = False) -> SpectralFitResult:
     """Fit `params` (names of `WaterModel` leaves, shared by all scenes) so that the region
     colours of the spectral scenes match the targets (in "xyz", "srgb" = linear sRGB, or
-    "lab"). init: name -> initial value (default: the first scene's water model)."""
+    "lab"). init: name -> initial value (default: the first scene's water model).
+    linear: names fitted in linear space (may cross 0); the others in log space.
+    Uncertainties: sd(p) = p sd(ln p) for log-space parameters, sd(p) for linear ones."""
     import optimistix as optx
 
     t0 = _time.perf_counter()
-    from ._fit import _named
+    from ._fit import _named, _resolve
 
     spectral, snames = _named(spectral, SpectralScene)
+    params = list(params)
+    linear = tuple(linear)
+    if not params:
+        raise ValueError("params: nothing to fit")
     for p in params:
         if p not in PARAMS:
             raise ValueError(f"params: unknown {p!r}; one of {', '.join(PARAMS)}")
+        if params.count(p) > 1:
+            raise ValueError(f"params: {p!r} listed twice")
+    for p in linear:
+        if p not in params:
+            raise ValueError(f"linear: {p!r} is not one of the fitted params")
     if space not in ("xyz", "srgb", "lab"):
         raise ValueError(f"space: unknown {space!r}")
-    from ._fit import _resolve
-
+    if not isinstance(passes, int) or passes < 1:
+        raise ValueError(f"passes: must be a positive integer, got {passes!r}")
     _, regions, _ = _resolve({k: s.scene for k, s in zip(snames, spectral)}, regions)
     config = config or RenderConfig(algorithm="pt", max_depth=6)
     w0 = spectral[0].water
     init = dict(init or {})
+    for k in init:
+        if k not in params:
+            raise ValueError(f"init: {k!r} is not one of the fitted params")
     p0 = np.array([float(init.get(p, np.asarray(getattr(w0, p)))) for p in params])
-    if not np.all(p0 > 0):
+    if not np.all(np.isfinite(p0)):
+        raise ValueError("init: values must be finite")
+    if not all(v > 0 for v, p in zip(p0, params) if p not in linear):
         raise ValueError("init: every fitted parameter must be > 0 (log-space fit)")
+    lin = np.array([p in linear for p in params])
+    theta0 = np.where(lin, p0, np.log(np.where(lin, 1.0, p0)))
     pdtype = jnp.result_type(float)
     dtype = spectral[0].scene.bounds.dtype
     targets = np.array([r.target for r in regions], np.float64)
     unc = np.array([default_uncertainty(r.target, space) if r.uncertainty is None
                     else r.uncertainty for r in regions], np.float64)
-    colours = spectral_region_colours_fn(spectral, regions, list(params), config, passes, seed)
+    colours = spectral_region_colours_fn(spectral, regions, params, config, passes, seed,
+                                         linear)
     M, white = _colour_constants()
     Minv = np.linalg.inv(M)
     tgt = jnp.asarray(targets, dtype)
@@ -160,7 +257,7 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
         return xyz_to_lab(xyz, white)
 
     def residual_fn(y, args):
-        xyz, overflow = colours(y)
+        xyz, overflow = colours(y.astype(dtype))
         return ((convert(xyz) - tgt) * inv_unc).reshape(-1).astype(pdtype), overflow
 
     history: list[dict] = []
@@ -169,6 +266,8 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
         history.append({"step": int(kw["num_steps"]), "loss": float(kw["loss_this_step"]),
                         "loss_accepted": float(kw["loss_last_accepted_step"]),
                         "theta": np.asarray(kw["y"], np.float64).tolist()})
+        if progress:
+            print(f"  step {history[-1]['step']:3d}  loss {history[-1]['loss']:.6g}", flush=True)
 
     def verbose(**kw):
         jax.debug.callback(_record, {k: v[1] for k, v in kw.items()
@@ -185,8 +284,10 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
         return (sol.value, sol.result, sol.stats["num_steps"], sol.aux, r0,
                 sol.state.f_info.jac.as_matrix(), sol.state.f_info.residual)
 
-    y, result, nsteps, overflow, r0, J, r1 = solve(jnp.asarray(np.log(p0), pdtype))
+    t1 = _time.perf_counter()
+    y, result, nsteps, overflow, r0, J, r1 = solve(jnp.asarray(theta0, pdtype))
     y = np.asarray(jax.block_until_ready(y), np.float64)
+    solve_seconds = _time.perf_counter() - t1
     if bool(overflow):
         raise RuntimeError("fit_spectral: the merging gather overflowed its capacity")
     res = np.asarray(r1, np.float64)
@@ -195,11 +296,15 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
     cov_u = np.linalg.pinv(J.T @ J)
     cov = cov_u * float(res @ res) / max(m - n, 1)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    vals = np.exp(y)
+    vals = np.where(lin, y, np.exp(np.where(lin, 0.0, y)))
+    vals_sd = np.where(lin, sd, vals * sd)
     fitted = res.reshape(-1, 3) * unc + targets
     initial = np.asarray(r0, np.float64).reshape(-1, 3) * unc + targets
+    water = {f.name: getattr(w0, f.name) for f in dataclasses.fields(w0)}
+    water = {k: (v if isinstance(v, bool) else float(np.asarray(v))) for k, v in water.items()}
+    water.update({p: float(v) for p, v in zip(params, vals)})
     return SpectralFitResult(
-        params=dict(zip(params, vals)), params_sd=dict(zip(params, vals * sd)),
+        params=dict(zip(params, vals)), params_sd=dict(zip(params, vals_sd)),
         init=dict(zip(params, p0)), cov=cov, cov_unscaled=cov_u, space=space,
         regions=[dataclasses.replace(r, scene=snames[r.scene]) for r in regions],
         targets=targets, fitted=fitted, initial=initial,
@@ -209,5 +314,133 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
         wall_seconds=_time.perf_counter() - t0, history=history,
         config={"render": dataclasses.asdict(config), "passes": passes, "seed": seed,
                 "n_wavelengths": spectral[0].n_wavelengths, "max_steps": max_steps,
-                "rtol": rtol, "atol": atol, "scenes": snames},
-        truth=truth)
+                "rtol": rtol, "atol": atol, "scenes": snames,
+                "size": [[s.scene.camera.width, s.scene.camera.height] for s in spectral]},
+        truth=truth, linear=linear, theta=y, jacobian=J, residuals=res,
+        solve_seconds=solve_seconds, water=water)
+
+
+# ------------------------------------------------------------------ absorption spectrum
+def absorption_band(res: SpectralFitResult, lam, draws: int = 2000, seed: int = 0):
+    """sigma_a(lam) of the fitted model, and its 16th/84th percentiles over `draws` samples of
+    theta ~ N(theta_hat, Cov) (the Jacobian covariance): (mean curve, lo, hi) [len(lam)].
+    Parameters not fitted stay at the model's values."""
+    from ._water_optics import WaterModel
+
+    lam = np.asarray(lam, np.float64)
+    names = list(res.params)
+    lin = np.array([n in res.linear for n in names])
+    base = {k: v for k, v in (res.water or {}).items()}
+
+    def curve(vals):
+        w = dict(base)
+        w.update(dict(zip(names, vals)))
+        flags = {k: w.pop(k) for k in ("pure_absorption", "pure_scattering") if k in w}
+        m = WaterModel(**{k: np.float64(v) for k, v in w.items()}, **flags)
+        return np.asarray(m.sigma_a(lam), np.float64)
+
+    theta = np.asarray(res.theta, np.float64)
+    rng = np.random.default_rng(seed)
+    cov = 0.5 * (res.cov + res.cov.T)
+    th = rng.multivariate_normal(theta, cov, size=draws, method="svd")
+    vals = np.where(lin, th, np.exp(np.where(lin, 0.0, th)))
+    # one WaterModel per draw would be slow: sigma_a is linear in the absorption leaves
+    # (a_w_scale, a_cdom, a_flat) once S is fixed, but stay general: vectorise by hand
+    curves = np.stack([curve(v) for v in vals[: min(draws, 400)]])
+    fit_vals = np.where(lin, theta, np.exp(np.where(lin, 0.0, theta)))
+    return curve(fit_vals), np.percentile(curves, 16, 0), np.percentile(curves, 84, 0)
+
+
+# ------------------------------------------------------------------ figure and outputs
+def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
+    """Target vs fitted (and initial) swatches per region, the loss per step, and the fitted
+    absorption spectrum with a 1-sigma band vs the initial model and Pope & Fry."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ._water_optics import WaterModel, pope_fry_table
+
+    R = len(res.regions)
+    tg = to_srgb_host(res.targets, res.space)
+    ft = to_srgb_host(res.fitted, res.space)
+    it = to_srgb_host(res.initial, res.space)
+    scale = 0.8 / max(float(np.max(tg)), 1e-6)
+
+    def disp(c):
+        c = np.clip(np.asarray(c) * scale, 0.0, 1.0)
+        return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+    fig, (ax, ax2, ax3) = plt.subplots(1, 3, figsize=(15, max(0.9 * R + 2.2, 4.2)),
+                                       gridspec_kw={"width_ratios": [1.2, 1, 1.1]})
+    for i, r in enumerate(res.regions):
+        y = R - 1 - i
+        for j, c in enumerate((it[i], tg[i], ft[i])):
+            ax.add_patch(plt.Rectangle((j * 1.1, y), 1.0, 0.85, color=disp(c)))
+        ax.text(3.4, y + 0.42, f"{r.name}  ({r.scene})\n"
+                f"ΔE00 {res.delta_e2000_initial[i]:.3g} -> {res.delta_e2000[i]:.2g}",
+                va="center", fontsize=8)
+    for j, lab in enumerate(("initial", "target", "fitted")):
+        ax.text(j * 1.1 + 0.5, R + 0.05, lab, ha="center", va="bottom", fontsize=9)
+    ax.set_xlim(0, 6.2)
+    ax.set_ylim(-0.1, R + 0.5)
+    ax.axis("off")
+    ax.set_title(f"regions (display sRGB, common exposure x{scale:.3g})", fontsize=9)
+    h = res.history
+    if h:
+        st = [e["step"] for e in h]
+        ax2.semilogy(st, [max(e["loss"], 1e-30) for e in h], "o-", ms=3, label="loss of step")
+        acc = [(e["step"], e["loss_accepted"]) for e in h if e["step"] > 0]
+        if acc:
+            ax2.semilogy(*zip(*acc), "s--", ms=3, label="last accepted")
+        ax2.set_xlabel("Levenberg-Marquardt step")
+        ax2.set_ylabel("loss 0.5 sum r^2 (r = residual / uncertainty)")
+        ax2.legend(fontsize=8)
+    ax2.set_title("\n".join(f"{k} = {v:.4g} ± {res.params_sd[k]:.2g}"
+                            for k, v in res.params.items())
+                  + f"\n{res.iterations} steps, {res.wall_seconds:.1f} s", fontsize=8)
+    lam = np.linspace(380.0, 720.0, 341)
+    mid, lo, hi = absorption_band(res, lam)
+    base = dict(res.water or {})
+    flags = {k: base.pop(k) for k in ("pure_absorption", "pure_scattering") if k in base}
+    b0 = dict(base)
+    b0.update(res.init)
+    a_init = np.asarray(WaterModel(**{k: np.float64(v) for k, v in b0.items()},
+                                   **flags).sigma_a(lam), np.float64)
+    wl, aw = pope_fry_table()
+    sel = (wl >= 380) & (wl <= 720)
+    ax3.fill_between(lam, lo, hi, color="C0", alpha=0.3, lw=0, label="fit ±1σ (Jacobian)")
+    ax3.semilogy(lam, mid, "C0-", lw=1.2, label="fitted σ_a(λ)")
+    ax3.semilogy(lam, a_init, "C1:", lw=1.2, label="initial model")
+    ax3.semilogy(wl[sel], aw[sel], "k.", ms=3, label="Pope & Fry 1997 a_w")
+    if res.truth:
+        bt = dict(base)
+        bt.update(res.truth)
+        a_true = np.asarray(WaterModel(**{k: np.float64(v) for k, v in bt.items()},
+                                       **flags).sigma_a(lam), np.float64)
+        ax3.semilogy(lam, a_true, "k-", lw=0.6, alpha=0.6, label="truth")
+    ax3.set_xlabel("wavelength (nm)")
+    ax3.set_ylabel("absorption σ_a (1/m)")
+    ax3.set_ylim(max(1e-3, float(np.min(np.maximum(lo, 1e-4))) * 0.5), None)
+    ax3.legend(fontsize=7)
+    ax3.set_title("fitted absorption spectrum", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_outputs_spectral(res: SpectralFitResult, out_dir: str) -> tuple[str, str]:
+    """fit.json + fit.png in out_dir (like `_fit.write_outputs`)."""
+    import os
+
+    os.makedirs(out_dir, exist_ok=True)
+    jp = os.path.join(out_dir, "fit.json")
+    pp = os.path.join(out_dir, "fit.png")
+    d = res.to_dict()
+    d["mode"] = "spectral"
+    with open(jp + ".tmp", "w") as f:
+        json.dump(d, f, indent=1)
+    os.replace(jp + ".tmp", jp)
+    plot_fit_spectral(res, pp)
+    return jp, pp

@@ -28,6 +28,8 @@ log space):
   n (0-2; ~1 for small particles, ~0 for large ones), with a Henyey-Greenstein phase of
   asymmetry g (~0.9 in natural waters). Pure-water scattering is ~0.002 /m, so any visible
   haze in a scene comes from this term.
+* a_w_scale (default 1): a factor on the Pope & Fry term, for fits that must be free to
+  get pure water wrong (e.g. fits/literature_pure_water); leave it at 1 otherwise.
 
 Why not more: the target observables are colours of a few regions at known depths, i.e.
 a smooth spectrum of extinction; two absorption shapes (exponential in the blue, flat) on
@@ -128,14 +130,17 @@ def water_ior(lam: ArrayLike) -> Array:
 class WaterModel(eqx.Module):
     """Pure water + CDOM-like and flat extra absorption + power-law particle scattering.
 
-        sigma_a(lambda) = a_w(lambda) + a_cdom exp(-S (lambda - 440)) + a_flat
+        sigma_a(lambda) = a_w_scale a_w(lambda) + a_cdom exp(-S (lambda - 440)) + a_flat
         sigma_s(lambda) = b_w(lambda) + b_p (lambda / 550)^-n_p
         phase of the particles: Henyey-Greenstein, asymmetry g
 
     Leaves (differentiable): a_cdom [1/m at 440 nm], S [1/nm], a_flat [1/m],
-    b_p [1/m at 550 nm], n_p [-], g [-]. The static flags switch the pure-water terms
-    off (tests that need an exactly grey or purely absorbing medium).
-    The default instance is pure water.
+    b_p [1/m at 550 nm], n_p [-], g [-], a_w_scale [-]. a_w_scale multiplies the Pope &
+    Fry pure-water term (default 1: the data as published); it exists so that a fit can
+    be *wrong* about pure water and show that region colours bring it back to 1
+    (fits/literature_pure_water), not as a physical parameter of real water. The static
+    flags switch the pure-water terms off (tests that need an exactly grey or purely
+    absorbing medium; a_w_scale is then unused). The default instance is pure water.
     """
 
     a_cdom: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
@@ -144,6 +149,7 @@ class WaterModel(eqx.Module):
     b_p: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
     n_p: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
     g: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.9)
+    a_w_scale: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
     pure_absorption: bool = eqx.field(static=True, default=True)
     pure_scattering: bool = eqx.field(static=True, default=True)
 
@@ -162,7 +168,10 @@ class WaterModel(eqx.Module):
 
     def sigma_a(self, lam: ArrayLike) -> Array:
         a = self.extra_absorption(lam)
-        return a + pure_water_absorption(lam) if self.pure_absorption else a
+        if not self.pure_absorption:
+            return a
+        a_w = pure_water_absorption(lam)
+        return a + self.a_w_scale.astype(a_w.dtype) * a_w
 
     def sigma_s(self, lam: ArrayLike) -> Array:
         b = self.particle_scattering(lam)

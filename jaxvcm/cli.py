@@ -88,6 +88,16 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--max-depth", type=_pos_int(), metavar="D",
                    help="maximum path length in segments")
     r.add_argument("--quiet", action="store_true", help="no progress line")
+    r.add_argument("--spectral", action="store_true",
+                   help="spectral mode (hero wavelengths, CIE XYZ film; jaxvcm.render_spectral): "
+                        "the water is a WaterModel (pure water unless --water), the scene's "
+                        "RGB sigma_a / sigma_s are not used; --passes N (default 16), no --time, "
+                        "no --snapshot-every")
+    r.add_argument("--wavelengths", type=_pos_int(), default=None, metavar="C",
+                   help="wavelengths per pass with --spectral (default 8)")
+    r.add_argument("--water", default=None, metavar="K=V[,K=V]",
+                   help="WaterModel fields with --spectral, e.g. a_cdom=0.05,b_p=0.1 "
+                        "(a_cdom, S, a_flat, b_p, n_p, g, a_w_scale)")
 
     i = sub.add_parser("info", help="describe a scene")
     i.add_argument("scene", metavar="SCENE")
@@ -97,7 +107,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("out", metavar="OUT", help="OUT.glb, OUT.ply or OUT.obj")
 
     f = sub.add_parser("fit", help="fit water coefficients to target colours (fit.json + "
-                       "fit.png); config format: jaxvcm/_fit.py CONFIG_DOC")
+                       "fit.png); RGB or spectral (mode = \"spectral\"); config format: "
+                       "jaxvcm/_fit.py CONFIG_DOC")
     f.add_argument("config", metavar="CONFIG", help="fit config (.toml)")
     f.add_argument("--out", metavar="DIR", help="output directory (default out/<config>)")
     f.add_argument("--quiet", action="store_true", help="no per-step lines")
@@ -136,6 +147,59 @@ def _default_out(scene_path: str) -> str:
     return os.path.join("out", stem + ".exr")
 
 
+def _water_model(text: str | None):
+    """--water 'a_cdom=0.05,b_p=0.1' -> WaterModel (pure water for None)."""
+    from ._fit import WATER_FIELDS
+    from ._water_optics import WaterModel
+
+    kw = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        k, eq, v = item.partition("=")
+        k = k.strip()
+        if not eq or k not in WATER_FIELDS:
+            raise ValueError(f"--water: expected KEY=VALUE with KEY one of "
+                             f"{', '.join(WATER_FIELDS)}, got {item.strip()!r}")
+        try:
+            x = float(v)
+        except ValueError:
+            raise ValueError(f"--water: {k}: expected a number, got {v.strip()!r}") from None
+        if not math.isfinite(x) or (k != "g" and x < 0) or (k == "g" and not -1 < x < 1):
+            raise ValueError(f"--water: {k}: out of range: {x}")
+        kw[k] = x
+    return WaterModel(**kw)
+
+
+def _cmd_render_spectral(a, out, config) -> int:
+    import time
+
+    import jaxvcm
+
+    if a.time is not None:
+        raise ValueError("--time: not available with --spectral; use --passes N")
+    if a.snapshot_every is not None:
+        raise ValueError("--snapshot-every: not available with --spectral")
+    water = _water_model(a.water)
+    passes = a.passes or 16
+    scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
+    sp = jaxvcm.spectral_scene(scene, water, n_wavelengths=a.wavelengths or 8)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    _enable_compilation_cache()
+    t0 = time.perf_counter()
+    try:
+        jaxvcm.render_spectral(sp, passes=passes, seed=a.seed, config=config, out=out,
+                               exposure=a.exposure)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr, flush=True)
+        return 130
+    if not a.quiet:
+        print(f"spectral: {passes} passes x {sp.n_wavelengths} wavelengths in "
+              f"{time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    print(out)
+    return 0
+
+
 def _cmd_render(a) -> int:
     import jaxvcm
     from ._config import RenderConfig
@@ -143,6 +207,9 @@ def _cmd_render(a) -> int:
     out = a.out or _default_out(a.scene)
     if os.path.splitext(out)[1].lower() != ".exr":
         raise ValueError(f"--out: must end in .exr, got {out!r}")
+    if not a.spectral and (a.wavelengths is not None or a.water is not None):
+        raise ValueError(("--wavelengths" if a.wavelengths is not None else "--water")
+                         + ": only with --spectral")
     passes, tlimit = a.passes, a.time
     if passes is None and tlimit is None:
         tlimit = 60.0
@@ -152,6 +219,8 @@ def _cmd_render(a) -> int:
     if a.radius is not None:
         cfg["radius"] = a.radius
     config = RenderConfig(**cfg)
+    if a.spectral:
+        return _cmd_render_spectral(a, out, config)
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
     d = os.path.dirname(os.path.abspath(out))
     os.makedirs(d, exist_ok=True)
@@ -272,8 +341,14 @@ def _cmd_fit(a) -> int:
     if os.path.exists(out) and not os.path.isdir(out):
         raise ValueError(f"--out: {out!r} exists and is not a directory")
     _enable_compilation_cache()
-    res = _fit.fit(**kw, progress=not a.quiet)
-    jp, pp = _fit.write_outputs(res, out)
+    if kw.pop("mode", "rgb") == "spectral":
+        from . import _fit_spectral
+
+        res = _fit_spectral.fit_spectral(**kw, progress=not a.quiet)
+        jp, pp = _fit_spectral.write_outputs_spectral(res, out)
+    else:
+        res = _fit.fit(**kw, progress=not a.quiet)
+        jp, pp = _fit.write_outputs(res, out)
     print(res.summary())
     print(jp)
     print(pp)
