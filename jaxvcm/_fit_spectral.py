@@ -68,6 +68,7 @@ class SpectralFitResult:
     residuals: np.ndarray | None = None  # (rendered - target) / uncertainty
     solve_seconds: float = 0.0
     water: dict | None = None  # the fitted WaterModel's fields (for plots and reports)
+    model_type: type | None = None  # WaterModel or the subclass that was fitted
 
     def to_dict(self) -> dict:
         def f(x):
@@ -196,7 +197,8 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
                  max_steps: int = 40, rtol: float = 1e-3, atol: float = 1e-3,
                  truth: dict | None = None, linear: Sequence[str] = (),
                  progress: bool = False) -> SpectralFitResult:
-    """Fit `params` (names of `WaterModel` leaves, shared by all scenes) so that the region
+    """Fit `params` (names of `WaterModel` leaves, or scalar leaves of a `WaterModel`
+    subclass, shared by all scenes) so that the region
     colours of the spectral scenes match the targets (in "xyz", "srgb" = linear sRGB, or
     "lab"). init: name -> initial value (default: the first scene's water model).
     linear: names fitted in linear space (may cross 0); the others in log space.
@@ -211,9 +213,14 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
     linear = tuple(linear)
     if not params:
         raise ValueError("params: nothing to fit")
+    w0 = spectral[0].water
+    # WaterModel's leaves, or the scalar leaves of a subclass (e.g. a freer absorption model)
+    allowed = list(PARAMS) + [f.name for f in dataclasses.fields(w0) if f.name not in PARAMS
+                              and not f.metadata.get("static", False)
+                              and np.ndim(getattr(w0, f.name)) == 0]
     for p in params:
-        if p not in PARAMS:
-            raise ValueError(f"params: unknown {p!r}; one of {', '.join(PARAMS)}")
+        if p not in allowed:
+            raise ValueError(f"params: unknown {p!r}; one of {', '.join(allowed)}")
         if params.count(p) > 1:
             raise ValueError(f"params: {p!r} listed twice")
     for p in linear:
@@ -225,7 +232,6 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
         raise ValueError(f"passes: must be a positive integer, got {passes!r}")
     _, regions, _ = _resolve({k: s.scene for k, s in zip(snames, spectral)}, regions)
     config = config or RenderConfig(algorithm="pt", max_depth=6)
-    w0 = spectral[0].water
     init = dict(init or {})
     for k in init:
         if k not in params:
@@ -317,16 +323,17 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
                 "rtol": rtol, "atol": atol, "scenes": snames,
                 "size": [[s.scene.camera.width, s.scene.camera.height] for s in spectral]},
         truth=truth, linear=linear, theta=y, jacobian=J, residuals=res,
-        solve_seconds=solve_seconds, water=water)
+        solve_seconds=solve_seconds, water=water, model_type=type(w0))
 
 
 # ------------------------------------------------------------------ absorption spectrum
-def absorption_band(res: SpectralFitResult, lam, draws: int = 2000, seed: int = 0):
+def absorption_band(res: SpectralFitResult, lam, draws: int = 400, seed: int = 0):
     """sigma_a(lam) of the fitted model, and its 16th/84th percentiles over `draws` samples of
     theta ~ N(theta_hat, Cov) (the Jacobian covariance): (mean curve, lo, hi) [len(lam)].
     Parameters not fitted stay at the model's values."""
     from ._water_optics import WaterModel
 
+    WaterModel = res.model_type or WaterModel  # noqa: N806
     lam = np.asarray(lam, np.float64)
     names = list(res.params)
     lin = np.array([n in res.linear for n in names])
@@ -344,9 +351,7 @@ def absorption_band(res: SpectralFitResult, lam, draws: int = 2000, seed: int = 
     cov = 0.5 * (res.cov + res.cov.T)
     th = rng.multivariate_normal(theta, cov, size=draws, method="svd")
     vals = np.where(lin, th, np.exp(np.where(lin, 0.0, th)))
-    # one WaterModel per draw would be slow: sigma_a is linear in the absorption leaves
-    # (a_w_scale, a_cdom, a_flat) once S is fixed, but stay general: vectorise by hand
-    curves = np.stack([curve(v) for v in vals[: min(draws, 400)]])
+    curves = np.stack([curve(v) for v in vals])
     fit_vals = np.where(lin, theta, np.exp(np.where(lin, 0.0, theta)))
     return curve(fit_vals), np.percentile(curves, 16, 0), np.percentile(curves, 84, 0)
 
@@ -362,6 +367,7 @@ def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
 
     from ._water_optics import WaterModel, pope_fry_table
 
+    WaterModel = res.model_type or WaterModel  # noqa: N806
     R = len(res.regions)
     tg = to_srgb_host(res.targets, res.space)
     ft = to_srgb_host(res.fitted, res.space)
