@@ -236,9 +236,12 @@ target = [{t[0]!r}, {t[1]!r}, {t[2]!r}]
 def test_cli_render_spectral(tmp_path, capsys):
     """The emitter seen through L = 4 m of pure water: Pope & Fry absorbs red (0.3-0.6 /m)
     far more than green (0.05) and blue (0.01), so the linear-sRGB image is blue-green:
-    B > G > R on every pixel (the colour-science colour of 4 m, beer_lambert_xyz(4, 0), is
-    sRGB ~ (0.19, 0.79, 0.95); 4 passes x 8 wavelengths cannot reorder channels that far
-    apart). The JSON records the spectral mode."""
+    B > G > R on every pixel. The colour-science colour of 4 m, beer_lambert_xyz(4, 0), is
+    linear sRGB (0.268, 0.823, 0.993). Every pixel of a pass sees the same wavelengths and
+    path length, so the only noise is the wavelength sampling: a NumPy model of 4 passes x 8
+    stratified wavelengths gives (0.268 +- 0.020, 0.823 +- 0.006, 0.992 +- 0.007) and never
+    broke the order in 20000 draws (the B - G gap is > 10 standard deviations). The JSON
+    records the spectral mode."""
     from jaxvcm import _film
 
     scene = tmp_path / "emitter.toml"
