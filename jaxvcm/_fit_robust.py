@@ -17,9 +17,16 @@ by the mean of pixels x passes samples: var n shrinks by that count and the drif
 This module renders the image and its Jacobian once per iterate (`image_model`), so every
 loss that is a linear function of the image -- per-pixel residuals, region averages --
 reuses one compiled program, and fits them with a small host-side Levenberg-Marquardt
-(`lm_fit`) and iteratively reweighted least squares (`irls_fit`: robust Cauchy/Huber
-weights recomputed between LM solves). `jaxvcm.fit` (optimistix) remains the fitting API;
-this is for studying losses.
+(`lm_fit`), iteratively reweighted least squares (`irls_fit`: robust Cauchy/Huber
+weights recomputed between LM solves) or the decorrelated estimating equation
+(`decorrelated_fit`: Jacobian from keys independent of the residual's). `ls_scale`,
+`irls_scale` and `predict_exp` predict where a loss's minimum lies from the noise of a
+render at the truth. `jaxvcm.fit` (optimistix) remains the fitting API; this is for
+studying losses (fits/caustic_robustness).
+
+Robust weights are not a cure for this drift: when per-pixel noise is Poisson-like there
+are no outliers to reject, and when there are, rejecting them leaves the bulk of a skewed
+estimator, which lies below its mean (tests/test_fit_robust.py). Average, or decorrelate.
 """
 
 from __future__ import annotations
@@ -48,7 +55,8 @@ def image_model(scene: Scene, config: RenderConfig, *, sigma_s=None):
     theta = ln sigma_a [C] (sigma_s fixed: `sigma_s` or the scene's), the image the mean of
     the passes with keys `keys` [P] (pass indices 0..P-1). Keys are an argument, so other
     seeds reuse the compiled program. Forward mode (`jax.jacfwd`: C JVPs)."""
-    ss = scene.water.sigma_s if sigma_s is None else jnp.asarray(sigma_s, scene.water.sigma_s.dtype)
+    ss = (scene.water.sigma_s if sigma_s is None
+          else jnp.asarray(sigma_s, scene.water.sigma_s.dtype))
     dtype = scene.water.sigma_a.dtype
 
     def image(theta, keys):
@@ -313,9 +321,9 @@ def irls_fit(model: Callable, loss: Callable, theta0, *, kind: str = "cauchy",
              outer: int = 8, tol: float = 1e-3, channels: int | None = None, history=None,
              **lm_kw) -> dict:
     """Robust fit by iteratively reweighted least squares: weights w = robust_weights(r)
-    (MAD scale, per channel with `channels`) of the *unweighted* residuals at the current theta, then an LM solve of
-    0.5 sum w r^2 with w fixed; repeat until theta moves by less than `tol` or `outer`
-    solves. Returns lm_fit's dict plus "weights", "outer", "evals" (all solves)."""
+    (MAD scale, per channel with `channels`) of the *unweighted* residuals at the current
+    theta, then an LM solve of 0.5 sum w r^2 with w fixed; repeat until theta moves by
+    less than `tol` or after `outer` solves. Returns lm_fit's dict plus "weights", "outer", "evals" (all solves)."""
     t0 = _time.perf_counter()
     theta = np.asarray(theta0, np.float64).copy()
     img, _ = model(theta)

@@ -165,7 +165,8 @@ def main():
                       "floor_per_sample_var_over_mean2": per_sample_var.tolist(),
                       "floor_zero_sample_fraction": zero},
            "fit": {"passes": P, "seeds": list(range(args.seeds))},
-           "blocks": list(BLOCKS), "noise": noise, "floor_rel_se": rel_se_floor.tolist(), "seeds": []}
+           "blocks": list(BLOCKS), "noise": noise, "floor_rel_se": rel_se_floor.tolist(),
+           "seeds": []}
     names = list(ops) + ["cauchy", "decorr"]
     if args.only:
         names = [n for n in names if n in args.only]
