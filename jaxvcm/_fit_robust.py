@@ -323,7 +323,8 @@ def irls_fit(model: Callable, loss: Callable, theta0, *, kind: str = "cauchy",
     """Robust fit by iteratively reweighted least squares: weights w = robust_weights(r)
     (MAD scale, per channel with `channels`) of the *unweighted* residuals at the current
     theta, then an LM solve of 0.5 sum w r^2 with w fixed; repeat until theta moves by
-    less than `tol` or after `outer` solves. Returns lm_fit's dict plus "weights", "outer", "evals" (all solves)."""
+    less than `tol` or after `outer` solves. Returns lm_fit's dict plus "weights",
+    "outer", "evals" (all solves)."""
     t0 = _time.perf_counter()
     theta = np.asarray(theta0, np.float64).copy()
     img, _ = model(theta)
