@@ -58,6 +58,13 @@ class PathEnds(NamedTuple):
     mat: Array
     seg_water: Array
     alive: Array
+    disp: Array  # beta carries the hero-only x C of a dispersive refraction (`_subpath`)
+
+
+def both_dispersed(C: int, a, b):
+    """1/C where both subpaths carry the dispersion factor C (it counts once per full path:
+    `_materials` doc), else 1. [...] -> [..., 1] to scale [..., C] contributions."""
+    return jnp.where(a & b, 1.0 / C, 1.0)[..., None]
 
 
 class Pdfs(NamedTuple):
@@ -90,7 +97,7 @@ def _ends(p0: Vec3, n0: Vec3, wo0: Vec3, beta0, A0, B0, verts: SP.Vertex, rest_A
         st(jnp.ones((N,), A0.dtype), verts.q), st(f, verts.delta),
         st(f, verts.kind == SP.KIND_MEDIUM), st(jnp.full((N,), -1, jnp.int32), verts.kind),
         st(jnp.zeros((N,), jnp.int32), verts.mat), st(f, verts.seg_water),
-        st(jnp.ones((N,), bool), verts.alive))
+        st(jnp.ones((N,), bool), verts.alive), st(f, verts.dispersed))
 
 
 def camera_ends(scene: Scene, cam_o: Vec3, verts: SP.Vertex, n_paths: int) -> PathEnds:
@@ -407,6 +414,7 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     fz = _f(scene)(z.kind, z.mat, z.wo, w, z.n)
     Tr = _tr(scene, wseg, d)
     contrib = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)[..., None]
+    contrib = contrib * both_dispersed(scene.channels, y.disp, z.disp).astype(dt)
     P = _pdf(scene)
     A_s = P(y.kind, y.mat, y.wo, -w, y.n) * _conv(z.medium, z.n, w, d, wseg, scene)
     B_s1 = P(z.kind, z.mat, z.wo, w, z.n) * _conv(y.medium, y.n, w, d, wseg, scene)

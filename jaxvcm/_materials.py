@@ -5,6 +5,16 @@ wi away from the surface towards where it goes next; n is the geometric normal.
 `beta` factors are f |cos| / pdf. Transport mode: camera paths carry radiance, so
 refraction scales by 1 / eta^2 (eta = IOR of wi's side / IOR of wo's side);
 light paths (importance) do not.
+
+Dispersion (hero-wavelength termination; Wilkie, Nawaz, Droske, Weidlich & Hanika 2014,
+sec. 4.3): a dielectric with one index per channel (`ior` of shape [C], channel 0 the hero
+wavelength) chooses the lobe with the hero's Fresnel R_h and refracts along the hero's
+direction. A reflection is the same direction for every wavelength: channel c is weighted
+R_c / R_h. A refraction is valid for the hero only: the weight is 1/eta_h^2 (radiance) on
+channel 0 and 0 on the others, and `disperse` is set; the path's owner multiplies the
+hero by C once per full path (`_subpath.step`, `_connect`, `_merge`), which turns the
+C-wavelength average into the single-wavelength estimator of the hero, unbiased because
+the hero is uniform on the range.
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ class BSDFSample(NamedTuple):
     pdf: Array  # solid-angle pdf (1 for delta lobes, by convention)
     delta: Array  # specular lobe sampled
     transmit: Array  # wi on the other side of the surface
+    disperse: Array  # a refraction at a dispersive dielectric: channels > 0 terminated
 
 
 def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: bool = True
@@ -57,7 +68,11 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: 
     wi_m = V.reflect(wo, ns)
 
     # ---- dielectric: eta = n_t / n_i seen from wo's side ----
-    eta = jnp.where(cos_o >= 0, ior, 1.0 / ior)
+    C = albedo.shape[-1]
+    ones = jnp.ones((C,), n.x.dtype)
+    dispersive = jnp.ndim(ior) == 1  # one index per channel (static: the array's rank)
+    ior_h = ior[0] if dispersive else ior  # the hero's index drives the sample
+    eta = jnp.where(cos_o >= 0, ior_h, 1.0 / ior_h)
     R, cos_t = fresnel_dielectric(cos_o, eta)
     refl = u_lobe < R
     cos_i = jnp.abs(cos_o)
@@ -65,20 +80,24 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: 
     wi_t = V.normalize(wi_t)
     wi_g = V.where(refl, wi_m, wi_t)
     scale_t = 1.0 / (eta * eta) if radiance else 1.0
-    w_g = jnp.where(refl, 1.0, scale_t)
+    if dispersive:
+        R_c, _ = fresnel_dielectric(cos_o, jnp.where(cos_o >= 0, ior, 1.0 / ior))
+        hero = (jnp.arange(C) == 0).astype(n.x.dtype)
+        w_g = jnp.where(refl, R_c / jnp.maximum(R, 1e-30), scale_t * hero)
+    else:
+        w_g = jnp.where(refl, 1.0, scale_t) * ones
 
     is_d = kind == MAT_DIFFUSE
     is_m = kind == MAT_MIRROR
     wi = V.where(is_d, wi_d, V.where(is_m, wi_m, wi_g))
-    C = albedo.shape[-1]
-    ones = jnp.ones((C,), n.x.dtype)
-    weight = jnp.where(is_d | is_m, albedo, w_g * ones)
+    weight = jnp.where(is_d | is_m, albedo, w_g)
     pdf = jnp.where(is_d, pdf_d, jnp.where(is_m, 1.0, jnp.where(refl, R, 1.0 - R)))
     delta = ~is_d
     transmit = (kind == MAT_DIELECTRIC) & ~refl
+    disperse = transmit & dispersive
     # A diffuse sample exactly on the horizon carries nothing.
     weight = jnp.where(is_d & (loc.z <= 0), 0.0, weight)
-    return BSDFSample(wi, weight, pdf, delta, transmit)
+    return BSDFSample(wi, weight, pdf, delta, transmit, disperse)
 
 
 def eval_bsdf(kind, albedo, wo: Vec3, wi: Vec3, n: Vec3) -> tuple[Array, Array]:

@@ -32,7 +32,7 @@ from . import _hashgrid as HG
 from . import _subpath as SP
 from . import _vec as V
 from ._config import RenderConfig
-from ._connect import PathEnds
+from ._connect import PathEnds, both_dispersed
 from ._scene import Scene
 from ._vec import Vec3
 
@@ -100,6 +100,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
     pwo = Vec3(*(flat(c) for c in lig.wo))
     pbeta = flat(lig.beta)
     pmed = flat(lig.medium)
+    pdisp = flat(lig.disp)
     pdepth = jnp.repeat(jnp.asarray(idx, jnp.int32), N)
     pvalid = flat(lig.alive) & ~flat(lig.delta)
     M = pp.x.shape[0]
@@ -116,6 +117,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
     zn = Vec3(*(g(c) for c in cam.n))
     zwo = Vec3(*(g(c) for c in cam.wo))
     zbeta, zmed, zkind, zmat = g(cam.beta), g(cam.medium), g(cam.kind), g(cam.mat)
+    zdisp = g(cam.disp)
 
     def kernel(qi, pj, d2):
         same = zmed[qi] == pmed[pj]
@@ -131,6 +133,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
         depth_ok = pdepth[pj] + j[qi] <= D
         ok = same & facing & depth_ok & _within(zmed[qi], d2, radius)
         f = f * _one_scattering_event(scene, zmed[qi])
+        f = f * both_dispersed(C, zdisp[qi], pdisp[pj]).astype(f.dtype)
         return jnp.where(ok[:, None], f * pbeta[pj], 0.0)
 
     total, count, overflow = HG.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
@@ -196,6 +199,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
             z.kind, z.mat, z.wo, y.wo, z.n)
         cz = jnp.where(z.medium, 1.0, jnp.abs(V.dot(z.n, y.wo)))
         fz = fz / jnp.maximum(cz, 1e-8)[:, None] * _one_scattering_event(scene, z.medium)
+        fz = fz * both_dispersed(scene.channels, z.disp, y.disp).astype(fz.dtype)
         # ---- the pdfs that change at the merge (x_s = z, photon y_s = y) ----
         pa1 = jax.vmap(bp)(z.kind, z.mat, y.wo, z.wo, z.n)  # z_{j-1} through z, from y_{i-1}
         dz = zp.p - z.p

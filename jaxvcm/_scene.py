@@ -53,7 +53,15 @@ class Camera(eqx.Module):
 class Materials(eqx.Module):
     kind: tuple[int, ...] = eqx.field(static=True)  # [M] MAT_*
     albedo: Float[Array, "M C"]  # diffuse reflectance / mirror tint
-    ior: Float[Array, "M"]  # relative IOR inside/outside for dielectrics, 1 otherwise
+    # relative IOR inside/outside for dielectrics, 1 otherwise. [M]: one index for every
+    # channel. [M C]: a dispersive index per channel (spectral mode, channel 0 = the hero
+    # wavelength): refractions follow the hero and terminate the other channels
+    # (`_materials.sample_bsdf`).
+    ior: Float[Array, "M"] | Float[Array, "M C"]
+
+    @property
+    def dispersive(self) -> bool:
+        return self.ior.ndim == 2
 
 
 class Rects(eqx.Module):

@@ -34,21 +34,28 @@ Upsampling at scene load (`spectral_scene`), all with colour-science:
   sRGB ~ (1, 1, 1) on the film.
 
 Water: `WaterModel` (pure water + CDOM-like and flat absorption + power-law particle
-scattering). One refractive index for the whole scene unless `dispersion=True`: by default the
+scattering). One refractive index for the whole scene unless dispersion is on: by default the
 Daimon & Masumura n(550 nm) = 1.33468; `ior="scene"` keeps the RGB scene's value and a
 number sets it. Phase function: HG with the model's g when b_p > 0, the pure-water phase
 (1 + 0.925 cos^2) otherwise (`phase="scene"` keeps the RGB scene's phase).
 
 Dispersion (option, off by default): with one index per scene every wavelength of a path
-takes the same refracted direction, so the C channels share one path. With
-`dispersion=True` each wavelength gets its own index n(lambda) (Daimon & Masumura,
-shifted to pass through the scene's index at 550 nm) and is traced on its OWN path: the
-pass vmaps the unchanged `render_pass` over C single-wavelength scenes with the same core
-key. That is exact (no secondary wavelength ever follows a refraction computed for
-another) but costs C times a non-dispersive pass. NOT implemented: the hero-wavelength
-literature's cheaper form (secondary wavelengths sharing the hero's path, terminated or
-MIS-weighted at dispersive refractions); it needs per-wavelength refraction pdfs inside
-the kernels, which this module deliberately does not touch.
+takes the same refracted direction, so the C channels share one path. With dispersion on,
+each wavelength has its own index n(lambda) (Daimon & Masumura, shifted to pass through the
+scene's index at 550 nm). Two implementations:
+
+* `dispersion="hero"` (`True`): the hero-wavelength literature's termination (Wilkie et
+  al. 2014, sec. 4.3). The core gets one index per channel (`Materials.ior` [M, C]); at a
+  refraction through the water surface the path follows the hero wavelength, the other
+  channels are terminated and the hero is weighted C (once per full path, however many
+  dispersive refractions its two subpaths made), which is the unbiased single-wavelength
+  estimator of the hero. Reflections keep every channel (weight R_c / R_h). Paths that
+  never refract keep all C wavelengths, so the cost is one pass and only refracted light
+  loses the hero's variance reduction.
+* `dispersion="exact"`: every wavelength is traced on its OWN path: the pass vmaps the
+  unchanged `render_pass` over C single-wavelength scenes with the same core key. No
+  wavelength ever follows a refraction computed for another, at C times the cost. It is
+  the reference the hero form is tested against.
 
 Light selection uses the RGB scene's power weights (any positive weights are unbiased;
 they are detached).
@@ -171,14 +178,14 @@ class SpectralScene(eqx.Module):
     n_wavelengths: int = eqx.field(static=True, default=8)
     phase_kind: int = eqx.field(static=True, default=PHASE_WATER)
     phase_b: float = eqx.field(static=True, default=PURE_WATER_PHASE_B)
-    dispersion: bool = eqx.field(static=True, default=False)
+    dispersion: str = eqx.field(static=True, default="off")  # "off" | "hero" | "exact"
     phase_from_scene: bool = eqx.field(static=True, default=False)  # keep the scene's g, b
 
     def ior_at(self, lam: Array) -> Array:
         """The water's index at lam: `ior` without dispersion; with dispersion the
         Daimon & Masumura curve shifted so that it passes through `ior` at 550 nm."""
         dt = lam.dtype
-        if not self.dispersion:
+        if self.dispersion == "off":
             return jnp.broadcast_to(self.ior.astype(dt), lam.shape)
         return water_ior(lam) + (self.ior.astype(dt) - water_ior(jnp.asarray(550.0, dt)))
 
@@ -192,6 +199,8 @@ class SpectralScene(eqx.Module):
         albedo = _interp_rows(lam, self.albedo.astype(dt))
         emission = _interp_rows(lam, self.emission.astype(dt))
         ior = (self.ior if ior is None else ior).astype(dt)
+        # ior [C] (hero dispersion): one index per channel for the water's material
+        # (`Materials.ior` [M, C]); the Water record keeps the hero's
         w = s.water
         if w.enabled:
             sig_a = jnp.maximum(self.water.sigma_a(lam).astype(dt), 0.0)
@@ -201,13 +210,17 @@ class SpectralScene(eqx.Module):
             else:
                 g = self.water.g.astype(dt) if self.phase_kind == PHASE_HG else w.g
                 b = jnp.asarray(self.phase_b, dt) if self.phase_kind == PHASE_WATER else w.b
-            mat_ior = s.materials.ior.at[w.mat].set(ior)
+            if ior.ndim == 1:
+                mat_ior = jnp.broadcast_to(s.materials.ior[:, None], (s.materials.ior.shape[0], C))
+                mat_ior = mat_ior.astype(dt).at[w.mat].set(ior)
+            else:
+                mat_ior = s.materials.ior.at[w.mat].set(ior)
         else:
             sig_a = sig_s = jnp.zeros((C,), dt)
             g, b, mat_ior = w.g, w.b, s.materials.ior
         water = dataclasses.replace(w, phase_kind=self.phase_kind if w.enabled else w.phase_kind,
                                     sigma_a=sig_a, sigma_s=sig_s, g=g, b=b,
-                                    ior=ior if w.enabled else w.ior)
+                                    ior=(ior.reshape(-1)[0] if w.enabled else w.ior))
         materials = dataclasses.replace(s.materials, albedo=albedo, ior=mat_ior)
         lights = dataclasses.replace(s.lights, radiance=emission)
         return dataclasses.replace(s, materials=materials, water=water, lights=lights)
@@ -222,7 +235,7 @@ class SpectralScene(eqx.Module):
 def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths: int = 8,
                    sun: str = "D65", sun_temperature: float = 5778.0,
                    ior: str | float = "data", phase: str = "auto",
-                   dispersion: bool = False) -> SpectralScene:
+                   dispersion: bool | str = False) -> SpectralScene:
     """Upsample an RGB scene once (host side): albedo and light spectra, water model.
 
     water:  the `WaterModel` (default: pure water).
@@ -230,11 +243,16 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
             number; one index for all wavelengths (no dispersion).
     phase:  "auto" (HG with water.g if b_p > 0, else the pure-water phase) or "scene".
     sun:    "D65" or "blackbody" (at `sun_temperature` K) for sun lights; other lights D65.
-    dispersion: off (default): one index, every wavelength shares each path. On: every
-            wavelength is traced on its own path (same core key) with its own index
-            n(lambda) (Daimon & Masumura, shifted to pass through the chosen index at
-            550 nm): exact, at C times the cost of a pass.
+    dispersion: False / "off" (default): one index, every wavelength shares each path.
+            True / "hero": per-wavelength index n(lambda) (Daimon & Masumura, shifted to
+            pass through the chosen index at 550 nm); refractions follow the hero
+            wavelength and terminate the others (one pass's cost). "exact": every
+            wavelength traced on its own path with its own index (C times the cost).
     """
+    modes = {False: "off", True: "hero", "off": "off", "hero": "hero", "exact": "exact"}
+    if not isinstance(dispersion, (bool, str)) or dispersion not in modes:
+        raise ValueError(f"dispersion: unknown {dispersion!r}; False/'off', True/'hero' or "
+                         "'exact'")
     if n_wavelengths < 1:
         raise ValueError(f"n_wavelengths: must be >= 1, got {n_wavelengths}")
     water = WaterModel() if water is None else water
@@ -259,7 +277,7 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
     A = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype=dt)  # noqa: E731
     water = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dt) if eqx.is_array(x) else x, water)
     return SpectralScene(scene, water, A(albedo), A(emission), A(_tables()["cmf"]), A(n),
-                         n_wavelengths, kind, pb, bool(dispersion), phase == "scene")
+                         n_wavelengths, kind, pb, modes[dispersion], phase == "scene")
 
 
 class SpectralDiagnostics(eqx.Module):
@@ -276,8 +294,11 @@ def render_pass_spectral(spectral: SpectralScene, key: PRNGKeyArray,
     n_wavelengths and the image size."""
     k_lam, k_render = split_pass_key(key)
     lam = sample_wavelengths(k_lam, spectral.n_wavelengths, spectral.scene.bounds.dtype)
-    if not spectral.dispersion:
+    if spectral.dispersion == "off":
         scene_c = spectral.at_wavelengths(lam)
+        L, diag = render_pass(scene_c, k_render, config, pass_index)
+    elif spectral.dispersion == "hero":
+        scene_c = spectral.at_wavelengths(lam, spectral.ior_at(lam))
         L, diag = render_pass(scene_c, k_render, config, pass_index)
     else:
         # one single-wavelength scene per wavelength, each with its own index; the same core

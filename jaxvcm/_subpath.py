@@ -55,6 +55,7 @@ class Vertex(NamedTuple):
     delta: Array  # the vertex scatters by a delta lobe
     escaped: Array  # vertex at infinity (the ray left the scene)
     alive: Array  # the vertex exists
+    dispersed: Array  # beta went through a dispersive refraction: hero only, times C
 
 
 class WalkState(NamedTuple):
@@ -70,6 +71,7 @@ class WalkState(NamedTuple):
     prev_medium: Array  # p_prev is a medium vertex
     prev_inf: Array  # p_prev is a light vertex at infinity (sun / sky disk)
     prev_conv: Array  # p_prev's reverse pdf needs no area conversion (camera, infinite light)
+    dispersed: Array  # beta went through a dispersive refraction (hero channel only, x C)
 
 
 def rr(index, q, cfg: RenderConfig):
@@ -203,18 +205,25 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     # ---- Russian roulette (local survival probability, applied by index) ----
     q_loc = jnp.where(scatter, Q_SPECULAR, local_q(kind, albedo))
     q = rr(index + 1, q_loc, cfg)
+    # ---- dispersion (hero-wavelength termination, `_materials` doc) ----
+    # the first dispersive refraction of the subpath turns beta into the hero's
+    # single-wavelength estimate: x C on channel 0 (the other channels are already 0).
+    # A full path whose two subpaths both carry the factor divides one C out (`_connect`).
+    first = bs.disperse & ~scatter & surf & ~s.dispersed
+    beta_next = beta_next * jnp.where(first, float(C), 1.0).astype(dt)
+    dispersed = s.dispersed | (bs.disperse & ~scatter & surf)
     alive = v_alive & ~esc & jnp.any(beta_next > 0) & (u[5] < q)
     beta_next = beta_next / q
 
     vertex = Vertex(p_rec, n, wo, beta, jax.lax.stop_gradient(pdf_fwd),
                     jax.lax.stop_gradient(rev), kind, mat, light_id, Le, q_loc, s.in_water,
-                    delta, esc & v_alive, v_alive)
+                    delta, esc & v_alive, v_alive, s.dispersed)
 
     # ---- spawn ----
     o = spawn(p, n, scatter, wi)
     in_water = (scatter | G.inside_water(water, o)) if water.enabled else s.in_water
     state = WalkState(o, p, n, wi, beta_next, alive, in_water, jax.lax.stop_gradient(pdf_w),
-                      delta, scatter, jnp.zeros((), bool), jnp.zeros((), bool))
+                      delta, scatter, jnp.zeros((), bool), jnp.zeros((), bool), dispersed)
     return state, vertex
 
 
@@ -242,10 +251,10 @@ def camera_start(scene: Scene, o: Vec3, d: Vec3, pdf_w) -> WalkState:
     f = jnp.zeros((), bool)
     return WalkState(o, o, V.from_array(scene.camera.forward), d, jnp.ones((C,), dt),
                      jnp.ones((), bool), G.inside_water(scene.water, o), pdf_w, f, f, f,
-                     jnp.ones((), bool))
+                     jnp.ones((), bool), f)
 
 
 def light_start(scene: Scene, e: Lt.Emission) -> WalkState:
     return WalkState(e.o, e.p, e.n, e.d, e.beta1, jnp.any(e.beta1 > 0),
                      G.inside_water(scene.water, e.o), e.pdf_dir, jnp.zeros((), bool),
-                     jnp.zeros((), bool), e.infinite, e.infinite)
+                     jnp.zeros((), bool), e.infinite, e.infinite, jnp.zeros((), bool))
