@@ -292,6 +292,8 @@ def lm_fit(model: Callable, loss: Callable, theta0, *, weights=None, max_steps: 
             step = -np.linalg.solve(A + lam * D, g)
         except np.linalg.LinAlgError:
             lam *= 10
+            if lam > 1e10:
+                break
             continue
         step = np.clip(step, -2.0, 2.0)  # at most a factor e^2 per step in sigma
         if np.max(np.abs(step)) < rtol:  # converged (float32 renders: no further decrease)

@@ -100,6 +100,8 @@ def main():
     ap.add_argument("--no-library", action="store_true", help="skip the jaxvcm.fit check")
     ap.add_argument("--only", nargs="*", help="run only these losses (smoke tests)")
     ap.add_argument("--plot-only", action="store_true", help="redraw from result.json")
+    ap.add_argument("--tag", default="",
+                    help="write result_TAG.json instead (no figure): side runs, e.g. passes")
     ap.add_argument("--resume", action="store_true",
                     help="keep the finished seeds of result.json (same settings)")
     args = ap.parse_args()
@@ -248,7 +250,7 @@ def main():
         if seed == 0:
             rec["fit_image_at_truth"] = R.tolist()
         out["seeds"].append(rec)
-        _write(out)
+        _write(out, args.tag)
 
     # ---------------- the library path (optimistix) on the quad loss, seed 0
     if not args.no_library:
@@ -267,8 +269,9 @@ def main():
 
     summarise(out)
     out["total_seconds"] = round(time.perf_counter() - t00, 1)
-    _write(out)
-    plot(out, target)
+    _write(out, args.tag)
+    if not args.tag:
+        plot(out, target)
     print(f"total {out['total_seconds']:.0f} s")
 
 
@@ -291,8 +294,8 @@ def summarise(out):
     out["summary"] = summ
 
 
-def _write(out):
-    p = os.path.join(HERE, "result.json")
+def _write(out, tag=""):
+    p = os.path.join(HERE, f"result_{tag}.json" if tag else "result.json")
     with open(p + ".tmp", "w") as f:
         json.dump(out, f, indent=1)
     os.replace(p + ".tmp", p)
