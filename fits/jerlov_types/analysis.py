@@ -27,7 +27,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
 import targets as T  # noqa: E402
-from run import DEPTHS, FIXED, INIT, water_init  # noqa: E402
+from run import DEPTHS, water_init  # noqa: E402
 from surrogate import pure_floor, surrogate_fit, surrogate_xyz  # noqa: E402
 
 

@@ -107,14 +107,15 @@ def fit_type(name, args):
     from jaxvcm._fit_spectral import fit_spectral, spectral_region_colours_fn
 
     t0 = time.perf_counter()
-    tx = np.stack([T.target_xyz(name, d) for d in DEPTHS])
+    tkw = {"interp": args.kd_interp}
+    tx = np.stack([T.target_xyz(name, d, **tkw) for d in DEPTHS])
     xy = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
     tlab = np.asarray(colour.XYZ_to_Lab(tx, xy), np.float64)
     free = tuple(args.free.split(","))
     w0 = water_init(free)
     if args.init == "surrogate":
         sub = [k for k in free if k != "b_p"]
-        sur = surrogate_fit(name, DEPTHS, w0, sub)
+        sur = surrogate_fit(name, DEPTHS, w0, sub, **tkw)
         w0.update({k: float(np.clip(v, 1e-3, 20.0)) for k, v in sur["params"].items()})
         print(f"[{name}] surrogate start {sur}")
     sps = build(DEPTHS, args.size, args.nw, w0)
@@ -307,6 +308,8 @@ def main():
                     help="fitted WaterModel leaves (the other extra terms are 0)")
     ap.add_argument("--tag", default="",
                     help="store under variants/TAG in result.json (not the main table)")
+    ap.add_argument("--kd-interp", choices=("water", "linear"), default="water",
+                    help="K_d between Jerlov's nodes: along Pope & Fry (default) or linear")
     ap.add_argument("--init", choices=("surrogate", "generic"), default="surrogate")
     ap.add_argument("--plot", action="store_true", help="only remake the figures")
     ap.add_argument("--table", default="",
@@ -321,7 +324,8 @@ def main():
             r = fit_type(t, args)
             r["target_model_sensitivity"] = target_diagnostics(t)
             r["run"] = {k: getattr(args, k) for k in ("size", "passes", "nw", "max_depth",
-                                                      "max_steps", "seed", "free", "init")}
+                                                      "max_steps", "seed", "free", "init",
+                                                      "kd_interp")}
             r["run"]["git"] = _git()
             data = load()  # merge: another run may have written other types meanwhile
             if args.tag:
