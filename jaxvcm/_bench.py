@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _bench_spectral as _sp
 from . import _bench_vm as _vm
 
 PROG = "jaxvcm bench"
@@ -162,9 +163,15 @@ def _parser() -> argparse.ArgumentParser:
                    f"excluded); grid PNG {_vm.ET_FIGURE} next to --out and passes, paths/s "
                    "per panel (defaults: scenes pool.toml pool_sun.toml pool_wall.toml, "
                    f"algorithms pt bdpt ppm vcm, size {_vm.ET_DEFAULT_SIZE})")
-    g.add_argument("--mis-pairs", type=_int_ge(1), default=_vm.MIS_DEFAULT_PAIRS, metavar="N",
+    m.add_argument("--dispersion", action="store_true",
+                   help="spectral dispersion modes off / hero / exact: seconds per pass, "
+                   "per-pass noise and efficiency, interleaved after warm-up (defaults: "
+                   f"scene pool_sun.toml, algorithm vcm, size {_sp.DEFAULT_SIZE}, "
+                   f"{_sp.DEFAULT_ROUNDS} rounds via --mis-pairs)")
+    g.add_argument("--mis-pairs", type=_int_ge(1), default=None, metavar="N",
                    help=f"timed pairs of passes of --compare-mis (default "
-                   f"{_vm.MIS_DEFAULT_PAIRS})")
+                   f"{_vm.MIS_DEFAULT_PAIRS}), rounds of --dispersion (default "
+                   f"{_sp.DEFAULT_ROUNDS})")
     return p
 
 
@@ -729,13 +736,17 @@ def _settings(argv):
     from ._config import ALGORITHMS
 
     a = _parser().parse_args(argv)
-    a.mode = "compare-mis" if a.compare_mis else "equal-time" if a.equal_time else None
+    a.mode = ("compare-mis" if a.compare_mis else "equal-time" if a.equal_time
+              else "dispersion" if a.dispersion else None)
+    if a.mis_pairs is None:
+        a.mis_pairs = _sp.DEFAULT_ROUNDS if a.mode == "dispersion" else _vm.MIS_DEFAULT_PAIRS
     if a.mode and a.full_size:
         raise _Usage(f"--full-size: not available with --{a.mode}")
     if a.mode and a.throughput_only:
         raise _Usage(f"--throughput-only: not available with --{a.mode}")
     mode_algs = {"compare-mis": _vm.MIS_DEFAULT_ALGORITHMS,
-                 "equal-time": _vm.ET_DEFAULT_ALGORITHMS}.get(a.mode, ["pt"])
+                 "equal-time": _vm.ET_DEFAULT_ALGORITHMS,
+                 "dispersion": list(_sp.DEFAULT_ALGORITHMS)}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
         if alg not in ALGORITHMS:
@@ -743,7 +754,8 @@ def _settings(argv):
     a.algorithms = list(dict.fromkeys(a.algorithms))
     root = repo_root()
     mode_scenes = {"compare-mis": _vm.MIS_DEFAULT_SCENES,
-                   "equal-time": _vm.ET_DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
+                   "equal-time": _vm.ET_DEFAULT_SCENES,
+                   "dispersion": _sp.DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
     names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
                                                      for s in mode_scenes]
     a.scene_paths = [_resolve_scene(s) for s in names]
@@ -755,7 +767,8 @@ def _settings(argv):
     if a.size is None and not a.full_size:
         a.size = (QUICK_SIZE if a.quick else
                   {"compare-mis": _vm.MIS_DEFAULT_SIZE,
-                   "equal-time": _vm.ET_DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
+                   "equal-time": _vm.ET_DEFAULT_SIZE,
+                   "dispersion": _sp.DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
     if a.max_depth is None:
         a.max_depth = 8
     if a.reference_time is None and a.reference_passes is None:
@@ -850,6 +863,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "equal-time":
             _vm.run_equal_time(a, argv, _Log(a.quiet))
+            return 0
+        if a.mode == "dispersion":
+            _sp.run_dispersion(a, argv, _Log(a.quiet))
             return 0
         res = run(a, argv)
     except (ValueError, OSError) as e:  # e.g. a malformed scene file: one line, status 2
