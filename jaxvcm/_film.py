@@ -47,20 +47,34 @@ def _mkstemp_near(path: str) -> str:
 
 @contextlib.contextmanager
 def _signals_held():
-    """Defer SIGINT/SIGTERM (main thread, POSIX) so a short critical section completes."""
+    """Defer SIGINT/SIGTERM (main thread) so a short critical section completes: Python-level
+    handlers that only record the signal replace the current ones for the duration; on the
+    way out the old handlers are restored and the first recorded signal is re-delivered to
+    them (SIGINT: KeyboardInterrupt at the end of the section). No thread signal mask is
+    touched: with a blocked mask a process-directed signal goes to one of XLA's threads,
+    and a section that blocks it was seen to lose a Ctrl-C under heavy load."""
     import signal
     import threading
 
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    if (not hasattr(signal, "pthread_sigmask")
-            or threading.current_thread() is not threading.main_thread()):
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    got: list[int] = []
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    old = {}
     try:
+        for sig in sigs:
+            old[sig] = signal.signal(sig, lambda n, _f: got.append(n))
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        if got:
+            h = old.get(got[0])
+            if callable(h):
+                h(got[0], None)  # the default SIGINT handler raises KeyboardInterrupt
+            elif h != signal.SIG_IGN:
+                signal.raise_signal(got[0])  # SIG_DFL: the default action, now
 
 
 @contextlib.contextmanager
