@@ -485,11 +485,11 @@ def _result_name(result) -> str:
 
 
 # ------------------------------------------------------------------ figure
-def plot_fit(res: FitResult, path: str) -> None:
-    """Target vs fitted (and initial) swatches per region + the loss per step."""
-    import matplotlib
-
-    matplotlib.use("Agg")
+def plot_swatches_and_loss(res, ax, ax2) -> None:
+    """The two panels every fit figure has: initial / target / fitted swatches per region
+    (one display exposure for all) on `ax`, the loss per Levenberg-Marquardt step on `ax2`.
+    `res`: a FitResult or SpectralFitResult (regions, targets, fitted, initial, space,
+    delta_e2000(_initial), history)."""
     import matplotlib.pyplot as plt
 
     R = len(res.regions)
@@ -502,11 +502,9 @@ def plot_fit(res: FitResult, path: str) -> None:
         c = np.clip(np.asarray(c) * scale, 0.0, 1.0)
         return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
 
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 0.9 * R + 2.2),
-                                  gridspec_kw={"width_ratios": [1.2, 1]})
     for i, r in enumerate(res.regions):
         y = R - 1 - i
-        for j, (c, lab) in enumerate(((it[i], "initial"), (tg[i], "target"), (ft[i], "fitted"))):
+        for j, c in enumerate((it[i], tg[i], ft[i])):
             ax.add_patch(plt.Rectangle((j * 1.1, y), 1.0, 0.85, color=disp(c)))
         ax.text(3.4, y + 0.42, f"{r.name}  ({r.scene})\n"
                 f"ΔE00 {res.delta_e2000_initial[i]:.3g} -> {res.delta_e2000[i]:.2g}",
@@ -527,6 +525,19 @@ def plot_fit(res: FitResult, path: str) -> None:
         ax2.set_xlabel("Levenberg-Marquardt step")
         ax2.set_ylabel("loss 0.5 sum r^2 (r = residual / uncertainty)")
         ax2.legend(fontsize=8)
+
+
+def plot_fit(res: FitResult, path: str) -> None:
+    """Target vs fitted (and initial) swatches per region + the loss per step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    R = len(res.regions)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 0.9 * R + 2.2),
+                                  gridspec_kw={"width_ratios": [1.2, 1]})
+    plot_swatches_and_loss(res, ax, ax2)
     txt = "\n".join([f"sa = " + ", ".join(f"{v:.4g}" for v in res.sigma_a),
                      f"ss = " + ", ".join(f"{v:.4g}" for v in res.sigma_s),
                      f"{res.iterations} steps, {res.wall_seconds:.1f} s"])

@@ -35,7 +35,7 @@ import numpy as np
 
 from ._config import RenderConfig
 from ._fit import (Region, _colour_constants, _result_name, default_uncertainty, delta_e2000,
-                   to_srgb_host, xyz_to_lab)
+                   plot_swatches_and_loss, xyz_to_lab)
 from ._render import pass_key
 from ._spectral import SpectralScene, render_pass_spectral
 
@@ -369,40 +369,9 @@ def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
 
     WaterModel = res.model_type or WaterModel  # noqa: N806
     R = len(res.regions)
-    tg = to_srgb_host(res.targets, res.space)
-    ft = to_srgb_host(res.fitted, res.space)
-    it = to_srgb_host(res.initial, res.space)
-    scale = 0.8 / max(float(np.max(tg)), 1e-6)
-
-    def disp(c):
-        c = np.clip(np.asarray(c) * scale, 0.0, 1.0)
-        return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-
     fig, (ax, ax2, ax3) = plt.subplots(1, 3, figsize=(15, max(0.9 * R + 2.2, 4.2)),
                                        gridspec_kw={"width_ratios": [1.2, 1, 1.1]})
-    for i, r in enumerate(res.regions):
-        y = R - 1 - i
-        for j, c in enumerate((it[i], tg[i], ft[i])):
-            ax.add_patch(plt.Rectangle((j * 1.1, y), 1.0, 0.85, color=disp(c)))
-        ax.text(3.4, y + 0.42, f"{r.name}  ({r.scene})\n"
-                f"ΔE00 {res.delta_e2000_initial[i]:.3g} -> {res.delta_e2000[i]:.2g}",
-                va="center", fontsize=8)
-    for j, lab in enumerate(("initial", "target", "fitted")):
-        ax.text(j * 1.1 + 0.5, R + 0.05, lab, ha="center", va="bottom", fontsize=9)
-    ax.set_xlim(0, 6.2)
-    ax.set_ylim(-0.1, R + 0.5)
-    ax.axis("off")
-    ax.set_title(f"regions (display sRGB, common exposure x{scale:.3g})", fontsize=9)
-    h = res.history
-    if h:
-        st = [e["step"] for e in h]
-        ax2.semilogy(st, [max(e["loss"], 1e-30) for e in h], "o-", ms=3, label="loss of step")
-        acc = [(e["step"], e["loss_accepted"]) for e in h if e["step"] > 0]
-        if acc:
-            ax2.semilogy(*zip(*acc), "s--", ms=3, label="last accepted")
-        ax2.set_xlabel("Levenberg-Marquardt step")
-        ax2.set_ylabel("loss 0.5 sum r^2 (r = residual / uncertainty)")
-        ax2.legend(fontsize=8)
+    plot_swatches_and_loss(res, ax, ax2)
     ax2.set_title("\n".join(f"{k} = {v:.4g} ± {res.params_sd[k]:.2g}"
                             for k, v in res.params.items())
                   + f"\n{res.iterations} steps, {res.wall_seconds:.1f} s", fontsize=8)

@@ -36,6 +36,8 @@ from jaxvcm._water_optics import (
     water_ior,
 )
 
+from jaxvcm._reference import sky_floor_radiance
+
 from . import _analytic as A
 
 
@@ -534,37 +536,6 @@ def test_hero_dispersion_agrees_with_exact():
 
 
 # ---------------------------------------------------------------- white floor under a sky
-def _fresnel_np(cos_i, eta):
-    """Unpolarised Fresnel reflectance, relative index eta = n_t / n_i (NumPy, vectorised)."""
-    sin2_t = (1 - cos_i**2) / eta**2
-    cos_t = np.sqrt(np.maximum(0.0, 1 - sin2_t))
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    return np.where(sin2_t >= 1, 1.0, 0.5 * (rp * rp + rs * rs))
-
-
-def sky_floor_radiance(depth, sigma_a, n, albedo, round_trips):
-    """test_transport.flat_water_floor_radiance vectorised over sigma_a [K] with 400-point
-    Gauss-Legendre rules instead of adaptive quadrature (same formulas: E_sky refracted in,
-    K reflected back down by the surface, L_f = (a/pi) E_sky sum_j ((a/pi) K)^j)."""
-    th_c = np.arcsin(1.0 / n)
-    x, w = np.polynomial.legendre.leggauss(400)
-
-    def rule(lo, hi):
-        return 0.5 * (hi - lo) * x + 0.5 * (hi + lo), 0.5 * (hi - lo) * w
-
-    t1, w1 = rule(0.0, th_c)
-    t2, w2 = rule(th_c, np.pi / 2)
-    R1 = _fresnel_np(np.cos(t1), 1.0 / n)
-    sa = np.asarray(sigma_a, np.float64)[:, None]
-    cs1, cs2 = np.cos(t1) * np.sin(t1), np.cos(t2) * np.sin(t2)
-    e_sky = 2 * np.pi * np.sum(w1 * n**2 * (1 - R1) * np.exp(-sa * depth / np.cos(t1)) * cs1, -1)
-    k = 2 * np.pi * (np.sum(w1 * R1 * np.exp(-2 * sa * depth / np.cos(t1)) * cs1, -1)
-                     + np.sum(w2 * np.exp(-2 * sa * depth / np.cos(t2)) * cs2, -1))
-    rho = albedo / np.pi * k
-    return albedo / np.pi * e_sky * sum(rho**j for j in range(round_trips + 1))
-
-
 def test_sky_floor_reference_matches_transport_quadrature():
     # The vectorised reference reproduces test_transport's adaptive-quadrature one.
     from . import test_transport as TT

@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxvcm._reference import fresnel_unpolarised
+
 N_WATER = 1.33468  # Daimon & Masumura n(550 nm) at 20 C: the renderer's default index
 CAM_HEIGHT = 0.3  # m, camera above the floor
 
@@ -68,12 +70,7 @@ def jerlov_kd(name: str, lam, interp: str = "water") -> np.ndarray:
     return base + out
 
 
-def _fresnel(cos_i, eta):
-    sin2_t = (1 - cos_i**2) / eta**2
-    cos_t = np.sqrt(np.maximum(0.0, 1 - sin2_t))
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    return np.where(sin2_t >= 1, 1.0, 0.5 * (rp * rp + rs * rs))
+_fresnel = fresnel_unpolarised
 
 
 class _Quad:

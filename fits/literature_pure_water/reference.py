@@ -33,36 +33,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxvcm._reference import fresnel_unpolarised, sky_floor_radiance
+
 N_WATER = 1.33468  # Daimon & Masumura n(550 nm), 20 C (jaxvcm's spectral default)
 CAM_HEIGHT = 0.3  # m above the floor
 DEPTHS = (0.5, 1.0, 2.0, 4.0)  # m
 
 
-def _fresnel(cos_i, eta):
-    sin2_t = (1 - cos_i**2) / eta**2
-    cos_t = np.sqrt(np.maximum(0.0, 1 - sin2_t))
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    return np.where(sin2_t >= 1, 1.0, 0.5 * (rp * rp + rs * rs))
+_fresnel = fresnel_unpolarised  # (bias_check.py uses it)
 
 
 def floor_radiance(depth, sigma, n=N_WATER):
-    """L_f [K] of the white floor for absorption sigma [K] (1/m), sky radiance 1."""
-    th_c = np.arcsin(1.0 / n)
-    x, w = np.polynomial.legendre.leggauss(400)
-
-    def rule(lo, hi):
-        return 0.5 * (hi - lo) * x + 0.5 * (hi + lo), 0.5 * (hi - lo) * w
-
-    t1, w1 = rule(0.0, th_c)
-    t2, w2 = rule(th_c, np.pi / 2)
-    F = _fresnel(np.cos(t1), 1.0 / n)
-    sa = np.atleast_1d(np.asarray(sigma, np.float64))[:, None]
-    cs1, cs2 = np.cos(t1) * np.sin(t1), np.cos(t2) * np.sin(t2)
-    e_sky = 2 * np.pi * np.sum(w1 * n**2 * (1 - F) * np.exp(-sa * depth / np.cos(t1)) * cs1, -1)
-    k = 2 * np.pi * (np.sum(w1 * F * np.exp(-2 * sa * depth / np.cos(t1)) * cs1, -1)
-                     + np.sum(w2 * np.exp(-2 * sa * depth / np.cos(t2)) * cs2, -1))
-    return e_sky / np.pi / (1 - k / np.pi)
+    """L_f [K] of the white floor for absorption sigma [K] (1/m), sky radiance 1: the
+    round trips between floor and surface summed to infinity."""
+    return sky_floor_radiance(depth, sigma, n, 1.0, None)
 
 
 def sky_radiance() -> float:

@@ -1,0 +1,55 @@
+"""NumPy reference formulas shared by the tests and the worked fits (float64, no JAX).
+
+`sky_floor_radiance` is the closed-form-plus-quadrature radiance of a white Lambertian
+floor at the bottom of a wide flat pool under a uniform sky of radiance 1, per absorption
+coefficient: sky light refracted in (Fresnel, n^2 radiance gain), attenuated on its slanted
+way down, and the floor's light reflected back down by the surface (partially inside the
+critical angle, totally beyond it), summed over round trips:
+
+    E_sky = 2 pi int_0^th_c n^2 (1 - R(th)) exp(-s d / cos th) cos th sin th dth
+    K     = 2 pi [int_0^th_c R(th) exp(-2 s d / cos th) cos sin dth
+                  + int_th_c^pi/2 exp(-2 s d / cos th) cos sin dth]
+    L_f   = (a / pi) E_sky sum_j ((a / pi) K)^j
+
+(th: the angle in the water; th_c = asin(1/n)). Gauss-Legendre rules with 400 points on
+each side of th_c. `tests/test_transport.py` checks the same formulas with adaptive
+quadrature; `tests/test_spectral.py` checks this vectorised form against it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def fresnel_unpolarised(cos_i, eta):
+    """Unpolarised Fresnel reflectance, relative index eta = n_t / n_i (vectorised); 1 under
+    total internal reflection."""
+    sin2_t = (1 - cos_i**2) / eta**2
+    cos_t = np.sqrt(np.maximum(0.0, 1 - sin2_t))
+    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    return np.where(sin2_t >= 1, 1.0, 0.5 * (rp * rp + rs * rs))
+
+
+def sky_floor_radiance(depth, sigma_a, n, albedo=1.0, round_trips=None):
+    """L_f [K] for absorption coefficients sigma_a [K] (1/m) at `depth` (m), water index n.
+    round_trips: the number of floor -> surface -> floor returns to sum (a path tracer with
+    max_depth D makes (D - 3) // 2 of them), or None for the whole geometric series."""
+    th_c = np.arcsin(1.0 / n)
+    x, w = np.polynomial.legendre.leggauss(400)
+
+    def rule(lo, hi):
+        return 0.5 * (hi - lo) * x + 0.5 * (hi + lo), 0.5 * (hi - lo) * w
+
+    t1, w1 = rule(0.0, th_c)
+    t2, w2 = rule(th_c, np.pi / 2)
+    R1 = fresnel_unpolarised(np.cos(t1), 1.0 / n)
+    sa = np.atleast_1d(np.asarray(sigma_a, np.float64))[:, None]
+    cs1, cs2 = np.cos(t1) * np.sin(t1), np.cos(t2) * np.sin(t2)
+    e_sky = 2 * np.pi * np.sum(w1 * n**2 * (1 - R1) * np.exp(-sa * depth / np.cos(t1)) * cs1, -1)
+    k = 2 * np.pi * (np.sum(w1 * R1 * np.exp(-2 * sa * depth / np.cos(t1)) * cs1, -1)
+                     + np.sum(w2 * np.exp(-2 * sa * depth / np.cos(t2)) * cs2, -1))
+    rho = albedo / np.pi * k
+    series = (1.0 / (1.0 - rho) if round_trips is None
+              else sum(rho**j for j in range(round_trips + 1)))
+    return albedo / np.pi * e_sky * series
