@@ -198,8 +198,15 @@ def _start_render(out: Path, log: Path):
     args = [sys.executable, "-m", "jaxvcm.cli", "render", POOL, *TINY, "--algorithm", "pt",
             "--time", "120",
             "--snapshot-every", "0.5", "--out", str(out)]
+    # The child starts with SIGINT at its default disposition whatever the harness does: a
+    # test run started as a shell's background job ignores SIGINT, children inherit
+    # "ignored", and Python then installs no KeyboardInterrupt handler. (The CI failure of
+    # this test, a render that ran to its time limit after SIGINT, was not this: pytest-xdist
+    # workers keep the default handler. It went away with `_film._signals_held` no longer
+    # blocking the thread's signal mask.)
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=open(log, "w"),
-                            env=_env(), cwd=out.parent)
+                            env=_env(), cwd=out.parent,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_for(proc, path: Path, log: Path, timeout=90.0):
