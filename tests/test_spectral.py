@@ -495,8 +495,8 @@ def test_hero_termination_conserves_the_channel_sum(alg, view):
     # So per pixel sum_c L_c(hero) = sum_c L_c(off) (float32: 1e-5), while the channels
     # themselves differ. Planted mistakes break it: no 1/C at joins (vcm-above: the merged
     # floor x4), no C at the first refraction, C at every refraction.
-    scene = (_pool_sun_from_under(12) if view == "under"
-             else jaxvcm.load_scene("scenes/pool_sun.toml", width=12, height=12))
+    scene = (_pool_sun_from_under(8) if view == "under"
+             else jaxvcm.load_scene("scenes/pool_sun.toml", width=8, height=8))
     ss = spectral_scene(scene, WaterModel(), n_wavelengths=4)
     cfg = RenderConfig(algorithm=alg, max_depth=4, rr_depth=100, radius=0.1)
     keys = jnp.stack([jaxvcm.pass_key(11, i) for i in range(2)])
@@ -516,18 +516,18 @@ def test_hero_dispersion_agrees_with_exact():
     # The two dispersive implementations estimate the same image (real Daimon & Masumura
     # dispersion now): pool_sun's floor caustics seen from under the water with BDPT, whose
     # light subpaths refract (light tracing and connections carry them), 4 wavelengths
-    # ("exact" renders 4 single-wavelength passes per pass). Independent estimates: 3x3-pixel
-    # block means of 12x12 XYZ images over 16 passes agree within 4.5 combined SE. (One
+    # ("exact" renders 4 single-wavelength passes per pass). Independent estimates: 2x2-pixel
+    # block means of 8x8 XYZ images over 16 passes agree within 4.5 combined SE. (One
     # hero per pass: the refracted light of a whole pass sits in one wavelength, so hero
     # passes are noisy in colour; the identity test above is the sharp one.)
-    scene = _pool_sun_from_under(12)
+    scene = _pool_sun_from_under(8)
     cfg = RenderConfig(algorithm="bdpt", max_depth=3, rr_depth=100)
     means = {}
     for mode, seed in (("hero", 21), ("exact", 22)):
         ss = spectral_scene(scene, WaterModel(), n_wavelengths=4, dispersion=mode)
         xyz, _, _, bad = spectral_stats(ss, cfg, passes=16, seed=seed)
         assert bad == 0
-        b = xyz.reshape(16, 4, 3, 4, 3, 3).mean((2, 4))
+        b = xyz.reshape(16, 4, 2, 4, 2, 3).mean((2, 4))
         means[mode] = (b.mean(0), b.std(0, ddof=1) / np.sqrt(16))
     (mh, sh), (me, se) = means["hero"], means["exact"]
     z = np.abs(mh - me) / np.sqrt(sh**2 + se**2 + 1e-30)
