@@ -282,22 +282,26 @@ def test_a_w_scale_multiplies_pope_fry():
 
 
 # ---------------------------------------------------------------- (e) spectral Jacobians vs FD
-SPEC_PARAMS = ("a_cdom", "a_flat", "a_w_scale", "b_p")
+SPEC_PARAMS = ("a_cdom", "a_flat", "a_w_scale", "S", "b_p", "n_p", "g")  # every fittable leaf
+N_SMOOTH = 4  # absorption-only parameters come first
 SPEC_REGIONS = ((3, 4, 9, 9), (3, 8, 9, 11), (1, 4, 3, 9))  # floor, near floor, left wall
 
 
 def test_spectral_jacobian_matches_central_differences():
     """jax.jacfwd of spectral region colours (XYZ of 3 regions of pool_sky, 12x12, PT,
-    max_depth 4, 4 wavelengths, one pass per key) w.r.t. theta = ln(a_cdom, a_flat,
-    a_w_scale, b_p) vs central differences of the same function with the same key.
-    The three absorption parameters only weight paths (the sampled distances depend on the
-    scattering alone), so per key FD - J is the O(h^2) term, h^2 |(sigma d)^2 - sigma d| / 6
-    < 1e-3 relative for h = 0.05 and sigma d < 3 (red light through ~2.5 m of water), plus
-    float32 rounding ~1e-7 / (2 h): tolerance 1% of |J| + 2e-6 per key. b_p moves the
-    sampled scattering distances, so the function of b_p has jumps with common keys: means
-    over 16 keys within 4.5 standard errors of the per-key difference + 3% (h = 0.2).
+    max_depth 4, 4 wavelengths, one pass per key) w.r.t. theta = ln of every fittable
+    WaterModel leaf (a_cdom, a_flat, a_w_scale, S, b_p, n_p, g) vs central differences of
+    the same function with the same key.
+    The four absorption parameters (a_cdom, a_flat, a_w_scale, the CDOM slope S) only
+    weight paths (the sampled distances depend on the scattering alone), so per key
+    FD - J is the O(h^2) term, h^2 |(sigma d)^2 - sigma d| / 6 < 1e-3 relative for h = 0.05
+    and sigma d < 3 (red light through ~2.5 m of water), plus float32 rounding ~1e-7 / (2 h):
+    tolerance 1% of |J| + 2e-6 per key. b_p and n_p move the sampled scattering distances
+    and g the sampled phase directions, so with common keys those functions have jumps:
+    means over 16 keys within 4.5 standard errors of the per-key difference + 3% (h = 0.2,
+    0.1 for g so that HG's g e^h stays below 1).
     Truth: a_cdom 0.05, a_flat 0.02, b_p 0.3 (raised so its derivative is resolved),
-    a_w_scale 1 (Pope & Fry); WaterModel's S, n_p, g at their defaults."""
+    a_w_scale 1 (Pope & Fry), S 0.015 /nm and n_p 1 (the WaterModel defaults), g 0.8."""
     import dataclasses
 
     import jax.numpy as jnp
@@ -306,7 +310,8 @@ def test_spectral_jacobian_matches_central_differences():
     from jaxvcm._spectral import render_pass_spectral, spectral_scene
 
     scene = jaxvcm.load_scene(POOL_SKY, width=12, height=12)
-    p0 = {"a_cdom": 0.05, "a_flat": 0.02, "a_w_scale": 1.0, "b_p": 0.3}
+    p0 = {"a_cdom": 0.05, "a_flat": 0.02, "a_w_scale": 1.0, "S": 0.015, "b_p": 0.3,
+          "n_p": 1.0, "g": 0.8}
     sp = spectral_scene(scene, WaterModel(**p0), n_wavelengths=4)
     dt = sp.scene.bounds.dtype
     cfg = RenderConfig(algorithm="pt", max_depth=4, rr_depth=100)
@@ -325,7 +330,7 @@ def test_spectral_jacobian_matches_central_differences():
                                                        has_aux=True)(t), in_axes=(None, 0)))
     theta0 = jnp.log(jnp.asarray([p0[n] for n in SPEC_PARAMS], dt))
     n = len(SPEC_PARAMS)
-    h = np.array([0.05, 0.05, 0.05, 0.2])
+    h = np.array([0.05] * N_SMOOTH + [0.2, 0.2, 0.1])  # g e^0.1 = 0.88 stays < 1
     J, _ = val_jac(theta0, keys)
     J = np.asarray(J, np.float64)  # [keys, 9, n]
     cols = []
@@ -336,13 +341,17 @@ def test_spectral_jacobian_matches_central_differences():
         cols.append((np.asarray(fp, np.float64) - np.asarray(fm, np.float64)) / (2 * h[j]))
     FD = np.stack(cols, -1)
     assert np.all(np.isfinite(J))
-    np.testing.assert_allclose(J[..., :3], FD[..., :3], rtol=0.01, atol=2e-6)
-    # non-trivial: every absorption term darkens the floor's Y (XYZ row 1 of region 0)
-    assert np.all(J[:, 1, :3].mean(0) < -1e-4), J[:, 1, :3].mean(0)
-    d = J[..., 3] - FD[..., 3]
+    sm = slice(0, N_SMOOTH)
+    np.testing.assert_allclose(J[..., sm], FD[..., sm], rtol=0.01, atol=2e-6)
+    # non-trivial: a_cdom, a_flat, a_w_scale darken the floor's Y (XYZ row 1 of region 0);
+    # a steeper CDOM slope S removes absorption (exp(-S (l - 440)) falls faster above 440)
+    jy = J[:, 1, :N_SMOOTH].mean(0)
+    assert np.all(jy[:3] < -1e-4) and jy[3] > 1e-5, jy
+    d = J[..., N_SMOOTH:] - FD[..., N_SMOOTH:]
     se = d.std(0, ddof=1) / np.sqrt(nk)
-    allow = 0.03 * np.abs(FD[..., 3].mean(0)) + 1e-5
-    assert np.all(np.abs(d.mean(0)) <= 4.5 * se + allow), (J[..., 3].mean(0), FD[..., 3].mean(0))
+    allow = 0.03 * np.abs(FD[..., N_SMOOTH:].mean(0)) + 1e-5
+    assert np.all(np.abs(d.mean(0)) <= 4.5 * se + allow), (
+        J[..., N_SMOOTH:].mean(0), FD[..., N_SMOOTH:].mean(0), se)
     # and the b_p derivative is resolved somewhere (the wall's in-scattering)
-    jb = J[..., 3].mean(0)
-    assert np.any(np.abs(jb) > 3 * J[..., 3].std(0, ddof=1) / np.sqrt(nk)), jb
+    jb = J[..., N_SMOOTH].mean(0)
+    assert np.any(np.abs(jb) > 3 * J[..., N_SMOOTH].std(0, ddof=1) / np.sqrt(nk)), jb
