@@ -493,8 +493,9 @@ def test_hero_termination_conserves_the_channel_sum(alg, view):
     # goes: a path that refracts puts C x in channel 0 instead of x in each channel (and a
     # join of two dispersed subpaths C C x / C), one that does not puts x in each channel.
     # So per pixel sum_c L_c(hero) = sum_c L_c(off) (float32: 1e-5), while the channels
-    # themselves differ. Planted mistakes break it: no 1/C at joins (vcm-above: the merged
-    # floor x4), no C at the first refraction, C at every refraction.
+    # themselves differ. A planted mistake breaks it (checked by monkeypatching): no 1/C at
+    # joins makes vcm-above fail (the merged floor x4). Forgetting the C would scale all
+    # refracted light by 1/C in both views (the `moved` check below needs it non-zero).
     scene = (_pool_sun_from_under(8) if view == "under"
              else jaxvcm.load_scene("scenes/pool_sun.toml", width=8, height=8))
     ss = spectral_scene(scene, WaterModel(), n_wavelengths=4)
