@@ -24,3 +24,13 @@ from ._spectral import render_pass_spectral as render_pass_spectral
 from ._spectral import render_spectral as render_spectral
 from ._spectral import spectral_scene as spectral_scene
 from ._water_optics import WaterModel as WaterModel
+from ._reference import fresnel_unpolarised as fresnel_unpolarised
+from ._reference import sky_floor_radiance as sky_floor_radiance
+from ._spectral import cmf_table as cmf_table
+from ._spectral import upsample_emission as upsample_emission
+from ._spectral import upsample_reflectance as upsample_reflectance
+from ._water_optics import jerlov_table as jerlov_table
+from ._water_optics import pope_fry_table as pope_fry_table
+from ._water_optics import pure_water_absorption as pure_water_absorption
+from ._water_optics import pure_water_scattering as pure_water_scattering
+from ._water_optics import water_ior as water_ior
