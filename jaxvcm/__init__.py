@@ -10,9 +10,9 @@ from ._fit import fit as fit
 from ._fit import load_fit_config as load_fit_config
 from ._fit_spectral import SpectralFitResult as SpectralFitResult
 from ._fit_spectral import fit_spectral as fit_spectral
-from ._loader import SceneError as SceneError
-from ._loader import load_scene as load_scene
-from ._loader import scene_from_dict as scene_from_dict
+from ._io import SceneError as SceneError
+from ._io import load_scene as load_scene
+from ._io import scene_from_dict as scene_from_dict
 from ._mis import mis_weight as mis_weight
 from ._render import Diagnostics as Diagnostics
 from ._render import pass_key as pass_key

@@ -331,7 +331,7 @@ def _ref_paths(ref_dir: Path, stem: str, alg: str, w: int, h: int, depth: int):
 def _load_reference(exr: Path, side: Path, want: dict, req_passes, req_time, shape,
                     forbidden_seed: int):
     """The stored reference if it matches `want` and is long enough, else None (+ why)."""
-    from ._film import read_exr
+    from ._io import read_exr
 
     if not (exr.is_file() and side.is_file()):
         return None, "none stored"
@@ -395,7 +395,7 @@ def _render_reference(scene, config, seed: int, req_passes, req_time, log, label
 def _get_reference(a, scene_path: Path, scene, stem: str, sha: str, log) -> tuple:
     from . import __version__
     from ._config import RenderConfig
-    from ._film import write_outputs
+    from ._io import write_outputs
 
     config = RenderConfig(algorithm=a.reference_algorithm, max_depth=a.max_depth)
     w, h = scene.camera.width, scene.camera.height
@@ -648,7 +648,7 @@ def _merge_markdown(old: str, header: str, tag: str, body: str) -> str:
 
 
 def _write_text(path: Path, text: str) -> None:
-    from ._film import atomic_path
+    from ._io import atomic_path
 
     with atomic_path(str(path)) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
@@ -659,7 +659,7 @@ def _plot(path: Path, stem: str, all_results: dict) -> bool:
     """relRMSE vs seconds, log-log, one line per (tag, algorithm) that has errors for `stem`."""
     from matplotlib.figure import Figure
 
-    from ._film import atomic_path
+    from ._io import atomic_path
 
     lines = []
     floors = []

@@ -206,7 +206,7 @@ def row_exposure(images) -> float:
 def equal_time_figure(path: Path, grid: list[list[dict]], scenes, algorithms) -> None:
     from matplotlib.figure import Figure
 
-    from ._film import atomic_path as _atomic, to_srgb8
+    from ._io import atomic_path as _atomic, to_srgb8
 
     nr, nc = len(grid), len(grid[0])
     fig = Figure(figsize=(2.6 * nc, 2.75 * nr + 0.3), dpi=110)

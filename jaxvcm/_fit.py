@@ -620,7 +620,7 @@ def load_fit_config(path) -> dict:
     import os
     import tomllib
 
-    from ._loader import _Ctx, scene_from_dict
+    from ._io._scene_file import _Ctx, scene_from_dict
 
     src = os.fspath(path)
 

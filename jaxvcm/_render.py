@@ -79,7 +79,7 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     seconds have elapsed (at least one pass). With `out`, writes EXR + PNG + JSON, and with
     `snapshot_every` (seconds) writes atomic snapshots along the way, so a killed render
     leaves its last snapshot intact."""
-    from . import _film
+    from . import _io as _film
 
     if passes is None and time is None:
         passes = 16

@@ -352,7 +352,7 @@ def render_spectral(spectral: SpectralScene, passes: int = 16, seed: int = 0,
     xyz = acc / passes
     rgb = xyz_to_srgb(xyz)
     if out:
-        from . import _film
+        from . import _io as _film
 
         meta = {"scene_name": spectral.scene.name, "mode": "spectral",
                 "n_wavelengths": spectral.n_wavelengths, "algorithm": config.algorithm,

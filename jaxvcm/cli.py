@@ -318,7 +318,7 @@ def _cmd_info(a) -> int:
 
 def _cmd_export(a) -> int:
     import jaxvcm
-    from ._export import FORMATS, export_scene
+    from ._io import FORMATS, export_scene
 
     ext = os.path.splitext(a.out)[1].lower()
     if ext not in FORMATS:  # fail before loading the scene

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxvcm import _film
+from jaxvcm import _io
 from jaxvcm.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -116,8 +116,8 @@ def test_write_outputs_atomic_on_failure(tmp_path, monkeypatch):
 
     out = tmp_path / "a.exr"
     img = np.random.default_rng(0).random((5, 7, 3), dtype=np.float32)
-    _film.write_outputs(str(out), img, {"k": 1}, exposure=1.0)
-    assert np.array_equal(_film.read_exr(out), img)
+    _io.write_outputs(str(out), img, {"k": 1}, exposure=1.0)
+    assert np.array_equal(_io.read_exr(out), img)
 
     class Broken:
         def __init__(self, *a, **k):
@@ -129,16 +129,16 @@ def test_write_outputs_atomic_on_failure(tmp_path, monkeypatch):
 
     monkeypatch.setattr(OpenEXR, "File", Broken)
     with pytest.raises(KeyboardInterrupt):
-        _film.write_outputs(str(out), img * 2, {"k": 2})
+        _io.write_outputs(str(out), img * 2, {"k": 2})
     monkeypatch.undo()
-    assert np.array_equal(_film.read_exr(out), img)  # the old file is intact
+    assert np.array_equal(_io.read_exr(out), img)  # the old file is intact
     assert json.loads((tmp_path / "a.json").read_text()) == {"k": 1}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.json", "a.png"]
 
 
 def test_progress_throttled():
     s = io.StringIO()
-    bar = _film.Progress(total=100, time_budget=None, stream=s)
+    bar = _io.Progress(total=100, time_budget=None, stream=s)
     for i in range(1, 101):
         bar.update(i, i * 1e-3)
     bar.close()
@@ -147,7 +147,7 @@ def test_progress_throttled():
     assert 1 <= text.count("\r") <= 3  # first, final, maybe one more
     assert "100/100" in text and "passes/s" in text and "ETA" in text
     s2 = io.StringIO()
-    quiet = _film.Progress(total=None, time_budget=5.0, enabled=False, stream=s2)
+    quiet = _io.Progress(total=None, time_budget=5.0, enabled=False, stream=s2)
     quiet.update(1, 0.1)
     quiet.close()
     assert s2.getvalue() == ""
@@ -158,7 +158,7 @@ def _check_outputs(exr: Path, shape=(16, 16, 3), snapshot=None) -> dict:
     import matplotlib.image as mpimg
     import OpenEXR
 
-    img = _film.read_exr(exr)
+    img = _io.read_exr(exr)
     assert img.shape == shape and img.dtype == np.float32
     assert np.all(np.isfinite(img)) and np.all(img >= 0)
     f = OpenEXR.File(str(exr))
@@ -202,7 +202,7 @@ def _start_render(out: Path, log: Path):
     # test run started as a shell's background job ignores SIGINT, children inherit
     # "ignored", and Python then installs no KeyboardInterrupt handler. (The CI failure of
     # this test, a render that ran to its time limit after SIGINT, was not this: pytest-xdist
-    # workers keep the default handler. It went away with `_film._signals_held` no longer
+    # workers keep the default handler. It went away with `_io._images._signals_held` no longer
     # blocking the thread's signal mask.)
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=open(log, "w"),
                             env=_env(), cwd=out.parent,

@@ -242,7 +242,7 @@ def test_cli_render_spectral(tmp_path, capsys):
     stratified wavelengths gives (0.268 +- 0.020, 0.823 +- 0.006, 0.992 +- 0.007) and never
     broke the order in 20000 draws (the B - G gap is > 10 standard deviations). The JSON
     records the spectral mode."""
-    from jaxvcm import _film
+    from jaxvcm import _io
 
     scene = tmp_path / "emitter.toml"
     scene.write_text(emitter_scene_toml(4.0, 4))
@@ -250,7 +250,7 @@ def test_cli_render_spectral(tmp_path, capsys):
     rc = main(["render", str(scene), "--spectral", "--wavelengths", "8", "--passes", "4",
                "--algorithm", "pt", "--max-depth", "2", "--out", str(exr), "--quiet"])
     assert rc == 0
-    img = _film.read_exr(exr)
+    img = _io.read_exr(exr)
     assert img.shape == (4, 4, 3) and np.all(np.isfinite(img))
     assert np.all(img[..., 2] > img[..., 1]) and np.all(img[..., 1] > img[..., 0])
     meta = json.loads(exr.with_suffix(".json").read_text())

@@ -30,7 +30,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ._scene import (
+from .._scene import (
     LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR,
     PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER, Camera, Lights, Materials, Rects, Scene, Spheres,
     Water,

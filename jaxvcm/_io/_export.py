@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 
-from ._scene import MAT_DIELECTRIC, MAT_MIRROR, Scene
+from .._scene import MAT_DIELECTRIC, MAT_MIRROR, Scene
 
 FORMATS = (".glb", ".ply", ".obj")
 
@@ -68,7 +68,7 @@ def water_mesh(scene: Scene, n: int = 128):
     import jax.numpy as jnp
     import trimesh
 
-    from ._geometry import water_height
+    from .._geometry import water_height
 
     w = scene.water
     if n < 2:
@@ -96,7 +96,7 @@ def export_scene(scene: Scene, path, water_resolution: int = 128) -> str:
     The file is written atomically. Returns the path."""
     import trimesh
 
-    from ._film import atomic_path
+    from ._images import atomic_path
 
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
