@@ -12,7 +12,7 @@ from ._images import to_srgb8 as to_srgb8
 from ._images import write_exr as write_exr
 from ._images import write_outputs as write_outputs
 from ._images import write_png as write_png
-from ._images import Progress as Progress
+from ._progress import Progress as Progress
 from ._scene_file import SceneError as SceneError
 from ._scene_file import load_scene as load_scene
 from ._scene_file import scene_from_dict as scene_from_dict
