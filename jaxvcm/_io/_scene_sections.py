@@ -1,0 +1,314 @@
+"""One parser per section of a scene file (the format: `_scene_file.py`).
+
+Each parser validates its section through a `_Ctx` (one-line errors naming the field) and
+returns NumPy float64 values; `_Parts` collects what several sections add to (materials,
+rectangles, spheres, lights), in file order: named materials, [[shapes]], [[lights]]
+(each emitter adds an internal material and a rectangle or sphere), then the water
+surface's dielectric material.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .._scene import (
+    LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR,
+    PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER,
+)
+from ._toml import CHANNELS, _Ctx
+
+
+def _frame(normal: np.ndarray, hint: np.ndarray | None):
+    if hint is None or abs(np.dot(hint / np.linalg.norm(hint), normal)) > 0.999:
+        hint = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.9 else np.array([0.0, 0.0, -1.0])
+    t1 = np.cross(hint, normal)
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(normal, t1)
+    return t1, t2
+
+
+@dataclasses.dataclass
+class _Parts:
+    """Materials, rectangles, spheres and lights gathered over the sections."""
+
+    named: dict = dataclasses.field(default_factory=dict)  # the [materials] table
+    mat_names: list = dataclasses.field(default_factory=list)
+    mat_kind: list = dataclasses.field(default_factory=list)
+    mat_albedo: list = dataclasses.field(default_factory=list)
+    mat_ior: list = dataclasses.field(default_factory=list)
+    rect_p0: list = dataclasses.field(default_factory=list)
+    rect_e1: list = dataclasses.field(default_factory=list)
+    rect_e2: list = dataclasses.field(default_factory=list)
+    rect_mat: list = dataclasses.field(default_factory=list)
+    rect_light: list = dataclasses.field(default_factory=list)
+    sph_c: list = dataclasses.field(default_factory=list)
+    sph_r: list = dataclasses.field(default_factory=list)
+    sph_mat: list = dataclasses.field(default_factory=list)
+    sph_light: list = dataclasses.field(default_factory=list)
+    l_kind: list = dataclasses.field(default_factory=list)
+    l_shape: list = dataclasses.field(default_factory=list)
+    l_rad: list = dataclasses.field(default_factory=list)
+    l_dir: list = dataclasses.field(default_factory=list)
+    basin: tuple | None = None  # (min, max) of the last basin
+
+    def add_material(self, kind, albedo, ior=1.0) -> int:
+        self.mat_kind.append(kind)
+        self.mat_albedo.append(np.asarray(albedo, float) * np.ones(CHANNELS))
+        self.mat_ior.append(ior)
+        self.mat_names.append(f"<internal {len(self.mat_kind)}>")
+        return len(self.mat_kind) - 1
+
+    def mat_ref(self, ctx: _Ctx, v, field: str) -> int:
+        s = ctx.string(v, field)
+        if s not in self.named:
+            ctx.fail(field, f"unknown material {s!r}")
+        return self.mat_names.index(s)
+
+    def add_rect(self, center, normal, size, hint, mat, light=-1) -> None:
+        t1, t2 = _frame(normal, hint)
+        e1, e2 = t1 * size[0], t2 * size[1]
+        self.add_rect_corners(center - 0.5 * e1 - 0.5 * e2, e1, e2, mat, light)
+
+    def add_rect_corners(self, p0, e1, e2, mat, light=-1) -> None:
+        self.rect_p0.append(np.asarray(p0, float))
+        self.rect_e1.append(np.asarray(e1, float))
+        self.rect_e2.append(np.asarray(e2, float))
+        self.rect_mat.append(mat)
+        self.rect_light.append(light)
+
+    def add_sphere(self, center, radius, mat, light=-1) -> None:
+        self.sph_c.append(center)
+        self.sph_r.append(radius)
+        self.sph_mat.append(mat)
+        self.sph_light.append(light)
+
+
+# ---------------------------------------------------------------- [camera]
+def parse_camera(ctx: _Ctx, c, width=None, height=None) -> dict:
+    """[camera] -> origin, orthonormal (forward, right, up), tan(fov / 2), width, height."""
+    ctx.table(c, {"position", "target", "up", "fov", "width", "height"},
+              {"position", "target", "fov", "width", "height"}, "camera")
+    pos = ctx.vec(c["position"], "camera.position")
+    tgt = ctx.vec(c["target"], "camera.target")
+    up = ctx.unit(c.get("up", [0.0, 1.0, 0.0]), "camera.up")
+    fov = ctx.number(c["fov"], "camera.fov", positive=True)
+    if fov >= 180:
+        ctx.fail("camera.fov", f"must be < 180 degrees, got {fov}")
+    W = ctx.integer(c["width"] if width is None else width, "camera.width")
+    H = ctx.integer(c["height"] if height is None else height, "camera.height")
+    # The frame in float64 NumPy: jaxvcm._camera.camera_frame computes in JAX (float32
+    # unless x64 is on) and does not give bit-identical frames.
+    fwd = tgt - pos
+    if np.linalg.norm(fwd) == 0:
+        ctx.fail("camera.target", "must differ from camera.position")
+    fwd = fwd / np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    if np.linalg.norm(right) < 1e-6:
+        ctx.fail("camera.up", "must not be parallel to the view direction")
+    right /= np.linalg.norm(right)
+    cup = np.cross(right, fwd)
+    return dict(pos=pos, fwd=fwd, right=right, up=cup,
+                tan_half_fov=math.tan(math.radians(fov) / 2), width=W, height=H)
+
+
+# ---------------------------------------------------------------- [materials.NAME]
+def parse_materials(ctx: _Ctx, mats, parts: _Parts) -> None:
+    if not isinstance(mats, dict):
+        ctx.fail("materials", "expected a table of named materials")
+    parts.named = mats
+    for mname, m in mats.items():
+        f = f"materials.{mname}"
+        ctx.table(m, {"type", "albedo"}, {"type"}, f)
+        kind = ctx.string(m["type"], f + ".type", ("diffuse", "mirror"))
+        albedo = ctx.spectrum(m.get("albedo", 1.0 if kind == "mirror" else 0.5), f + ".albedo")
+        if np.any(albedo > 1):
+            ctx.fail(f + ".albedo", "must be <= 1 (energy conservation)")
+        parts.mat_names.append(mname)
+        parts.mat_kind.append(MAT_DIFFUSE if kind == "diffuse" else MAT_MIRROR)
+        parts.mat_albedo.append(albedo)
+        parts.mat_ior.append(1.0)
+
+
+# ---------------------------------------------------------------- [[shapes]]
+def _rect_size(ctx: _Ctx, s: dict, f: str) -> np.ndarray:
+    size = ctx.vec(s["size"], f + ".size", 2)
+    if np.any(size <= 0):
+        ctx.fail(f + ".size", "zero-size shape: both sides must be > 0")
+    return size
+
+
+def _radius(ctx: _Ctx, s: dict, f: str) -> float:
+    r = ctx.number(s["radius"], f + ".radius")
+    if r <= 0:
+        ctx.fail(f + ".radius", "zero-size shape: must be > 0")
+    return r
+
+
+def _rect_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
+    ctx.table(s, {"type", "center", "normal", "size", "up", "material"},
+              {"center", "normal", "size", "material"}, f)
+    size = _rect_size(ctx, s, f)
+    hint = ctx.vec(s["up"], f + ".up") if "up" in s else None
+    parts.add_rect(ctx.vec(s["center"], f + ".center"), ctx.unit(s["normal"], f + ".normal"),
+                   size, hint, parts.mat_ref(ctx, s["material"], f + ".material"))
+
+
+def _sphere_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
+    ctx.table(s, {"type", "center", "radius", "material"}, {"center", "radius", "material"}, f)
+    r = _radius(ctx, s, f)
+    center = ctx.vec(s["center"], f + ".center")
+    parts.add_sphere(center, r, parts.mat_ref(ctx, s["material"], f + ".material"))
+
+
+def _basin_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
+    """An open box: the floor and 4 inward-facing walls, as 5 rectangles."""
+    ctx.table(s, {"type", "min", "max", "floor_material", "wall_material", "wall_tops"},
+              {"min", "max", "floor_material", "wall_material"}, f)
+    lo = ctx.vec(s["min"], f + ".min")
+    hi = ctx.vec(s["max"], f + ".max")
+    if np.any(hi <= lo):
+        ctx.fail(f + ".max", "zero-size shape: max must exceed min on every axis")
+    tops = (ctx.vec(s["wall_tops"], f + ".wall_tops", 4) if "wall_tops" in s
+            else np.full(4, hi[1]))
+    if np.any(tops <= lo[1]):
+        ctx.fail(f + ".wall_tops", "every wall top must be above the floor")
+    fm = parts.mat_ref(ctx, s["floor_material"], f + ".floor_material")
+    wm = parts.mat_ref(ctx, s["wall_material"], f + ".wall_material")
+    x0, y0, z0 = lo
+    x1, _, z1 = hi
+    dx, dz = x1 - x0, z1 - z0
+    add = parts.add_rect_corners  # e1 x e2 must point into the pool
+    add([x0, y0, z0], [0, 0, dz], [dx, 0, 0], fm)  # floor, +y
+    add([x0, y0, z0], [0, tops[0] - y0, 0], [0, 0, dz], wm)  # x0 wall, +x
+    add([x1, y0, z0], [0, 0, dz], [0, tops[1] - y0, 0], wm)  # x1 wall, -x
+    add([x0, y0, z0], [dx, 0, 0], [0, tops[2] - y0, 0], wm)  # z0 wall, +z
+    add([x0, y0, z1], [0, tops[3] - y0, 0], [dx, 0, 0], wm)  # z1 wall, -z
+    parts.basin = (lo, hi)
+
+
+_SHAPES = {"rect": _rect_shape, "sphere": _sphere_shape, "basin": _basin_shape}
+
+
+def parse_shapes(ctx: _Ctx, shapes, parts: _Parts) -> None:
+    if not isinstance(shapes, list):
+        ctx.fail("shapes", "expected an array of tables ([[shapes]])")
+    for i, s in enumerate(shapes):
+        f = f"shapes[{i}]"
+        if not isinstance(s, dict) or "type" not in s:
+            ctx.fail(f + ".type", "missing required field")
+        kind = ctx.string(s["type"], f + ".type", tuple(_SHAPES))
+        _SHAPES[kind](ctx, s, f, parts)
+
+
+# ---------------------------------------------------------------- [[lights]]
+def _emitter_material(ctx: _Ctx, l: dict, f: str, parts: _Parts) -> int:
+    return parts.add_material(MAT_DIFFUSE, ctx.spectrum(l.get("albedo", 0.0), f + ".albedo"))
+
+
+def _rect_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
+    ctx.table(l, {"type", "center", "normal", "size", "radiance", "up", "albedo"},
+              {"center", "normal", "size", "radiance"}, f)
+    size = _rect_size(ctx, l, f)
+    rad = ctx.spectrum(l["radiance"], f + ".radiance", positive=True)
+    m = _emitter_material(ctx, l, f, parts)
+    hint = ctx.vec(l["up"], f + ".up") if "up" in l else None
+    parts.add_rect(ctx.vec(l["center"], f + ".center"), ctx.unit(l["normal"], f + ".normal"),
+                   size, hint, m, len(parts.l_kind))
+    return LIGHT_RECT, len(parts.rect_p0) - 1, rad, np.zeros(3)
+
+
+def _sphere_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
+    ctx.table(l, {"type", "center", "radius", "radiance", "albedo"},
+              {"center", "radius", "radiance"}, f)
+    r = _radius(ctx, l, f)
+    rad = ctx.spectrum(l["radiance"], f + ".radiance", positive=True)
+    m = _emitter_material(ctx, l, f, parts)
+    parts.add_sphere(ctx.vec(l["center"], f + ".center"), r, m, len(parts.l_kind))
+    return LIGHT_SPHERE, len(parts.sph_c) - 1, rad, np.zeros(3)
+
+
+def _sun_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
+    ctx.table(l, {"type", "direction", "irradiance"}, {"direction", "irradiance"}, f)
+    dvec = ctx.unit(l["direction"], f + ".direction")
+    rad = ctx.spectrum(l["irradiance"], f + ".irradiance", positive=True)
+    return LIGHT_SUN, -1, rad, dvec
+
+
+def _sky_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
+    ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
+    rad = ctx.spectrum(l["radiance"], f + ".radiance", positive=True)
+    return LIGHT_SKY, -1, rad, np.zeros(3)
+
+
+_LIGHTS = {"rect": _rect_light, "sphere": _sphere_light, "sun": _sun_light, "sky": _sky_light}
+
+
+def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
+    if not isinstance(lights, list) or not lights:
+        ctx.fail("lights", "the scene has no light (add a [[lights]] table)")
+    for i, l in enumerate(lights):
+        f = f"lights[{i}]"
+        if not isinstance(l, dict) or "type" not in l:
+            ctx.fail(f + ".type", "missing required field")
+        kind = ctx.string(l["type"], f + ".type", tuple(_LIGHTS))
+        k, shape, rad, dvec = _LIGHTS[kind](ctx, l, f, parts)
+        parts.l_kind.append(k)
+        parts.l_shape.append(shape)
+        parts.l_rad.append(rad)
+        parts.l_dir.append(dvec)
+
+
+# ---------------------------------------------------------------- [water]
+_PHASES = dict(isotropic=PHASE_ISOTROPIC, hg=PHASE_HG, water=PHASE_WATER)
+
+
+def _no_water() -> dict:
+    return dict(enabled=False, phase=PHASE_ISOTROPIC, level=0.0, waves=np.zeros((0, 4)),
+                fp=np.zeros(4), floor=0.0, sig_a=np.zeros(CHANNELS), sig_s=np.zeros(CHANNELS),
+                g=0.0, b=0.835, ior=1.0, mat=0)
+
+
+def parse_water(ctx: _Ctx, wdoc, parts: _Parts) -> dict:
+    """[water] (optional) -> the surface, footprint, floor and medium; adds the surface's
+    dielectric material last."""
+    if wdoc is None:
+        return _no_water()
+    ctx.table(wdoc, {"level", "waves", "sigma_a", "sigma_s", "phase", "g", "b", "ior",
+                     "footprint", "floor"}, {"level", "sigma_a", "sigma_s", "ior"}, "water")
+    level = ctx.number(wdoc["level"], "water.level")
+    waves = wdoc.get("waves", [])
+    if not isinstance(waves, list):
+        ctx.fail("water.waves", "expected a list of [A, kx, kz, phase]")
+    wv = np.array([ctx.vec(w, f"water.waves[{j}]", 4) for j, w in enumerate(waves)]
+                  ).reshape(-1, 4)
+    sig_a = ctx.spectrum(wdoc["sigma_a"], "water.sigma_a")
+    sig_s = ctx.spectrum(wdoc["sigma_s"], "water.sigma_s")
+    phase = ctx.string(wdoc.get("phase", "isotropic"), "water.phase", tuple(_PHASES))
+    g = ctx.number(wdoc.get("g", 0.0), "water.g")
+    if not -1 < g < 1:
+        ctx.fail("water.g", f"must lie in (-1, 1), got {g}")
+    b = ctx.number(wdoc.get("b", 0.835), "water.b", nonneg=True)
+    ior = ctx.number(wdoc["ior"], "water.ior", positive=True)
+    basin = parts.basin
+    if "footprint" in wdoc:
+        fp = ctx.vec(wdoc["footprint"], "water.footprint", 4)
+    elif basin is not None:
+        fp = np.array([basin[0][0], basin[1][0], basin[0][2], basin[1][2]])
+    else:
+        ctx.fail("water.footprint", "missing required field (no basin to take it from)")
+    if fp[1] <= fp[0] or fp[3] <= fp[2]:
+        ctx.fail("water.footprint", "zero-size shape: need xmin < xmax and zmin < zmax")
+    if "floor" in wdoc:
+        wfloor = ctx.number(wdoc["floor"], "water.floor")
+    elif basin is not None:
+        wfloor = basin[0][1]
+    else:
+        ctx.fail("water.floor", "missing required field (no basin to take it from)")
+    if wfloor >= level - np.abs(wv[:, 0]).sum():
+        ctx.fail("water.floor", "must lie below the lowest point of the water surface")
+    wmat = parts.add_material(MAT_DIELECTRIC, 1.0, ior)
+    return dict(enabled=True, phase=_PHASES[phase], level=level, waves=wv, fp=fp,
+                floor=wfloor, sig_a=sig_a, sig_s=sig_s, g=g, b=b, ior=ior, mat=wmat)
