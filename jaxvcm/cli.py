@@ -12,6 +12,9 @@ import math
 import os
 import sys
 
+# the old private name is kept: the commands below and scripts under fits/ call it
+from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
+
 PROG = "jaxvcm"
 
 
@@ -116,30 +119,6 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("bench", help="benchmarks (arguments are passed to jaxvcm._bench)",
                    add_help=False)
     return p
-
-
-def _cache_dir() -> str:
-    d = os.environ.get("JAXVCM_CACHE_DIR")
-    if d:
-        return d
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "jaxvcm", "jax")
-
-
-def _enable_compilation_cache() -> None:
-    """Persistent XLA compilation cache, so repeated CLI renders do not recompile.
-    Leaves an already configured cache (e.g. by a test harness) alone."""
-    import jax
-
-    try:
-        if jax.config.jax_compilation_cache_dir:
-            return
-        d = _cache_dir()
-        os.makedirs(d, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", d)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    except Exception:  # a cache is an optimisation, never a reason to fail
-        pass
 
 
 def _default_out(scene_path: str) -> str:
