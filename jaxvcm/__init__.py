@@ -34,3 +34,15 @@ from ._water_optics import pope_fry_table as pope_fry_table
 from ._water_optics import pure_water_absorption as pure_water_absorption
 from ._water_optics import pure_water_scattering as pure_water_scattering
 from ._water_optics import water_ior as water_ior
+# benchmarks' needs
+from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
+from ._config import ALGORITHMS as ALGORITHMS
+from ._film import atomic_path as atomic_path
+from ._film import read_exr as read_exr
+from ._film import to_srgb8 as to_srgb8
+from ._film import write_outputs as write_outputs
+from ._hashgrid import build as hashgrid_build
+from ._hashgrid import query_reduce as hashgrid_query_reduce
+from ._hashgrid import sort_order as hashgrid_sort_order
+from ._render import render_pass_host as render_pass_host
+from ._spectral import _render_pass_spectral_jit as render_pass_spectral_jit

@@ -11,11 +11,11 @@ shared by two of its cells is visited once, and keeps the points at distance <= 
 collisions and the parts of the cells outside the ball are removed by the distance test.
 
 JAX form (after jax-md's cell and neighbour lists): every shape is static. `build` sorts
-M point slots (invalid slots go to the end and are never returned); `query` writes at most
-`max_neighbours` indices per query into a [Q, K] array padded with -1, still counts every
-neighbour, and raises a sticky `overflow` flag when a count exceeds K; the host helper
-`query_with_retry` re-runs with a larger K. `query_reduce` sums a per-pair kernel over the
-neighbours without materialising [Q, K].
+M point slots (invalid slots go to the end and are never returned); `query_reduce` sums a
+per-pair kernel over the neighbours of each query without materialising a [Q, K] neighbour
+list. (The fixed-K neighbour list `query`, its host helper `query_with_retry` and
+`candidate_counts`, used only by the tests and the grid benchmark, live in
+tests/_hashgrid_oracles.py.)
 
 Exactness. The inclusion test is `dx*dx + dy*dy + dz*dz <= r*r` (inclusive) evaluated in
 the grid's dtype (float64 when x64 is enabled, whatever the input dtype: float32 inputs
@@ -31,7 +31,6 @@ that passes the test, as long as `grid.precise` holds (coordinates within ~4000 
 from __future__ import annotations
 
 import itertools
-import math
 from functools import partial
 from typing import Any, Callable, NamedTuple
 
@@ -275,68 +274,6 @@ def _unsort(qs: _Queries, a: Array) -> Array:
     return a if qs.inv is None else _gather(a, qs.inv)
 
 
-def query(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
-          radius: ArrayLike | None = None, *, max_neighbours: int,
-          chunk: int = DEFAULT_CHUNK, sort_queries: bool = True) -> tuple[Array, Array, Array]:
-    """Every valid point within distance <= radius (default: the build radius) of each query.
-
-    Returns (idx [Q, K] int32: indices into the build arrays, -1 padded, in bucket order;
-    count [Q] int32: the true number of neighbours, also when it exceeds K; overflow:
-    bool scalar, any count > K). K = `max_neighbours` (static). Queries are (optionally,
-    static `sort_queries`) sorted by block, then processed in chunks of `chunk` (static)
-    lanes by a while loop over the candidate slots of the chunk's longest candidate list:
-    work ~ sum over chunks of chunk * max candidates. Non-finite queries have no
-    neighbours. `radius` must not exceed the build radius.
-    """
-    k = int(max_neighbours)
-    if k < 0:
-        raise ValueError(f"max_neighbours must be >= 0, got {max_neighbours}")
-    n_q = jnp.shape(qx)[0]
-    if grid.points.shape[0] == 0 or n_q == 0:
-        return (jnp.full((n_q, k), -1, jnp.int32), jnp.zeros((n_q,), jnp.int32),
-                jnp.zeros((), bool))
-    qs = _prep(grid, qx, qy, qz, radius, chunk, sort_queries)
-    r, b = qs.r, qs.b
-    r2 = r * r
-    lane = lax.iota(jnp.int32, b)
-
-    def one_chunk(qc):
-        cx, cy, cz = qc
-        blk = _block(grid, cx, cy, cz, r)
-
-        def body(state):
-            t, count, idx = state
-            hit, pos, _ = _test(grid, cx, cy, cz, r2, blk, t)
-            # flat [B * (K + 1)] buffer, column K of every row a trash slot for misses and
-            # for hits past K: an in-bounds scatter with unique indices, 2x faster than 2-D
-            slot = lane * (k + 1) + jnp.where(hit & (count < k), count, k)
-            idx = idx.at[slot].set(pos, mode="promise_in_bounds", unique_indices=True,
-                                   wrap_negative_indices=False)
-            return t + 1, count + hit.astype(jnp.int32), idx
-
-        init = (jnp.zeros((), jnp.int32), jnp.zeros((b,), jnp.int32),
-                jnp.full((b * (k + 1),), -1, jnp.int32))
-        _, count, idx = lax.while_loop(lambda s: s[0] < jnp.max(blk.total), body, init)
-        return idx.reshape(b, k + 1)[:, :k], count
-
-    idx, count = lax.map(one_chunk, tuple(qs.q))
-    idx, count = _unsort(qs, idx), _unsort(qs, count)
-    idx = jnp.where(idx >= 0, _gather(grid.order, jnp.maximum(idx, 0)), -1)
-    return idx, count, jnp.any(count > k)
-
-
-def candidate_counts(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
-                     radius: ArrayLike | None = None) -> Array:
-    """[Q] int32 number of candidates (points in the distinct buckets of each query's block):
-    the loop length of `query`/`query_reduce`; its max is a good `max_candidates`."""
-    dt = grid.dtype
-    r = grid.radius if radius is None else jnp.asarray(radius).astype(dt)
-    q = [jnp.asarray(a).astype(dt) for a in (qx, qy, qz)]
-    if grid.points.shape[0] == 0:
-        return jnp.zeros(q[0].shape, jnp.int32)
-    return _block(grid, *q, r).total
-
-
 def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
                  fn: Callable[[Array, Array, Array], Any], radius: ArrayLike | None = None,
                  *, max_candidates: int | None = None, chunk: int = DEFAULT_CHUNK,
@@ -345,14 +282,16 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
 
     `fn(qi, pj, d2)` gets [B] arrays (query index into the given queries, point index into
     the build arrays, squared distance in the grid dtype) and returns a pytree of [B, ...]
-    arrays; returns (the per-query sums [Q, ...], count [Q] int32, overflow). `fn` is also
+    arrays; returns (the per-query sums [Q, ...], overflow). `fn` is also
     evaluated on non-neighbour lanes (their values are discarded with `where`; keep it
     finite there, e.g. `jnp.where` its own inputs, so gradients stay finite).
     max_candidates=None: while loop to each chunk's longest candidate list (exact, forward
     only). An int (static): at most that many candidates per query, by `fori_loop` (reverse
     differentiable; steps past the chunk's longest list are skipped by `lax.cond`);
-    `overflow` is set when some query has more candidates (then its sum and count miss
-    points). Choose it from `candidate_counts`. Chunks and sorting as in `query`.
+    `overflow` is set when some query has more candidates (then its sum misses points).
+    Choose it from the candidate counts (tests/_hashgrid_oracles.py `candidate_counts`).
+    Queries are (optionally, static `sort_queries`) sorted by block, then processed in
+    chunks of `chunk` (static) lanes: work ~ sum over chunks of chunk * max candidates.
     """
     n_q = jnp.shape(qx)[0]
     dt = grid.dtype
@@ -360,9 +299,9 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
     shape = jax.eval_shape(fn, probe, probe, probe.astype(dt))
     if grid.points.shape[0] == 0 or n_q == 0:
         out = jax.tree.map(lambda s: jnp.zeros((n_q,) + s.shape[1:], s.dtype), shape)
-        return out, jnp.zeros((n_q,), jnp.int32), jnp.zeros((), bool)
+        return out, jnp.zeros((), bool)
     qs = _prep(grid, qx, qy, qz, radius, chunk, sort_queries)
-    r, b = qs.r, qs.b
+    r = qs.r
     r2 = r * r
     cap = None if max_candidates is None else int(max_candidates)
     zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
@@ -372,46 +311,20 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
         blk = _block(grid, cx, cy, cz, r)
         tmax = jnp.max(blk.total)
 
-        def step(t, state):
-            acc, count = state
+        def step(t, acc):
             hit, pos, d2 = _test(grid, cx, cy, cz, r2, blk, t)
             v = fn(qi, _gather(grid.order, pos), d2)
             mask = lambda x: hit.reshape(hit.shape + (1,) * (x.ndim - 1))  # noqa: E731
-            acc = jax.tree.map(lambda a, x: a + jnp.where(mask(x), x, jnp.zeros_like(x)), acc, v)
-            return acc, count + hit.astype(jnp.int32)
+            return jax.tree.map(lambda a, x: a + jnp.where(mask(x), x, jnp.zeros_like(x)), acc, v)
 
-        init = (zeros, jnp.zeros((b,), jnp.int32))
         if cap is None:
-            _, acc, count = lax.while_loop(lambda s: s[0] < tmax,
-                                           lambda s: (s[0] + 1, *step(s[0], s[1:])),
-                                           (jnp.zeros((), jnp.int32), *init))
-            return acc, count, jnp.zeros((), bool)
-        acc, count = lax.fori_loop(
-            0, cap, lambda t, s: lax.cond(t < tmax, partial(step, t), lambda s: s, s), init)
-        return acc, count, tmax > cap
+            _, acc = lax.while_loop(lambda s: s[0] < tmax,
+                                    lambda s: (s[0] + 1, step(s[0], s[1])),
+                                    (jnp.zeros((), jnp.int32), zeros))
+            return acc, jnp.zeros((), bool)
+        acc = lax.fori_loop(
+            0, cap, lambda t, s: lax.cond(t < tmax, partial(step, t), lambda s: s, s), zeros)
+        return acc, tmax > cap
 
-    acc, count, over = lax.map(one_chunk, (qs.qi, tuple(qs.q)))
-    return jax.tree.map(partial(_unsort, qs), acc), _unsort(qs, count), jnp.any(over)
-
-
-# ------------------------------------------------------------------------- host helpers
-_query_jit = jax.jit(query, static_argnames=("max_neighbours", "chunk", "sort_queries"))
-
-
-def query_with_retry(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
-                     radius: ArrayLike | None = None, *, max_neighbours: int = 16,
-                     max_capacity: int = 1 << 16, **kw):
-    """Host loop: jitted `query`; on overflow double K (as often as the exact counts say
-    is needed, so one re-run) and re-run until no overflow. Returns ((idx, count,
-    overflow=False), K used). Raises if K would exceed `max_capacity`. Capacities stay
-    max_neighbours * 2**j (few recompiles). `kw`: chunk, sort_queries."""
-    k = max(1, int(max_neighbours))
-    while True:
-        idx, count, overflow = _query_jit(grid, qx, qy, qz, radius, max_neighbours=k, **kw)
-        if not bool(overflow):
-            return (idx, count, overflow), k
-        need = int(jnp.max(count))
-        k = k * 2 ** max(1, math.ceil(math.log2(need / k)))
-        if k > max_capacity:
-            raise RuntimeError(f"hash grid query needs {need} neighbours > max_capacity "
-                               f"{max_capacity}")
+    acc, over = lax.map(one_chunk, (qs.qi, tuple(qs.q)))
+    return jax.tree.map(partial(_unsort, qs), acc), jnp.any(over)

@@ -136,7 +136,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
         f = f * both_dispersed(C, zdisp[qi], pdisp[pj]).astype(f.dtype)
         return jnp.where(ok[:, None], f * pbeta[pj], 0.0)
 
-    total, count, overflow = HG.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
+    total, overflow = HG.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
                                              _search_radius(radius),
                                              max_candidates=cfg.merge_capacity)
     est = zbeta * total / (kernel_size(zmed, radius) * N)[:, None]
@@ -221,7 +221,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
             log_n, etas[0], etas[1], True)
         return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
 
-    total, count, overflow = HG.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
+    total, overflow = HG.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
                                              _search_radius(radius),
                                              max_candidates=cfg.merge_capacity)
     zmed = flat(cam.medium, ci)

@@ -8,9 +8,15 @@ Errors in the scene file or the arguments are reported as ONE line on stderr,
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import math
 import os
 import sys
+from pathlib import Path
+
+# the old private name is kept: the commands below and scripts under fits/ call it
+from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
 
 PROG = "jaxvcm"
 
@@ -113,33 +119,9 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--out", metavar="DIR", help="output directory (default out/<config>)")
     f.add_argument("--quiet", action="store_true", help="no per-step lines")
 
-    sub.add_parser("bench", help="benchmarks (arguments are passed to jaxvcm._bench)",
-                   add_help=False)
+    sub.add_parser("bench", help="benchmarks, from a source checkout (arguments are passed to "
+                   "benchmarks/bench.py; `jaxvcm bench --help`)", add_help=False)
     return p
-
-
-def _cache_dir() -> str:
-    d = os.environ.get("JAXVCM_CACHE_DIR")
-    if d:
-        return d
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "jaxvcm", "jax")
-
-
-def _enable_compilation_cache() -> None:
-    """Persistent XLA compilation cache, so repeated CLI renders do not recompile.
-    Leaves an already configured cache (e.g. by a test harness) alone."""
-    import jax
-
-    try:
-        if jax.config.jax_compilation_cache_dir:
-            return
-        d = _cache_dir()
-        os.makedirs(d, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", d)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    except Exception:  # a cache is an optimisation, never a reason to fail
-        pass
 
 
 def _default_out(scene_path: str) -> str:
@@ -355,17 +337,54 @@ def _cmd_fit(a) -> int:
     return 0
 
 
-def _cmd_bench(rest: list[str]) -> int:
-    import importlib
+def _benchmarks_dir() -> Path:
+    """Where `jaxvcm bench` looks for the benchmarks: <checkout>/benchmarks/, beside this
+    package's directory <checkout>/jaxvcm/ (a monkeypatch point for tests)."""
+    return Path(__file__).resolve().parent.parent / "benchmarks"
 
-    try:
-        _bench = importlib.import_module("jaxvcm._bench")
-    except ModuleNotFoundError as e:
-        if e.name == "jaxvcm._bench":
-            return _err("bench: the benchmark module jaxvcm._bench is not available")
-        raise
+
+def _import_benchmarks():
+    """The `benchmarks` package of the source checkout, or a one-line reason it is missing.
+
+    This is the ONE place where the library reaches the benchmarks. They are deliberately
+    not part of the installed package (pyproject installs jaxvcm* only) and the library
+    never imports them otherwise: `benchmarks/` is a top-level directory of the source
+    checkout, beside `jaxvcm/`. With the README's editable install (`pip install -e .`),
+    `jaxvcm` is imported from the checkout, so `benchmarks/` is found next to it; a regular
+    (non-editable, wheel) install has no such directory and `jaxvcm bench` fails with one
+    line. The package is loaded from that exact directory by file location rather than by
+    putting the checkout on sys.path, so an unrelated `benchmarks` package elsewhere on
+    sys.path (or in the current directory) is never picked up and sys.path is left alone.
+    If `benchmarks` is already imported from that directory (e.g. `python -m
+    benchmarks.bench`, or pytest run from the checkout) that module is reused."""
+    pkg = _benchmarks_dir()
+    init = pkg / "__init__.py"
+    if not init.is_file():
+        return None, (f"bench: the benchmarks are not installed with the package; run it from "
+                      f"a source checkout installed with `pip install -e .` (no {pkg})")
+    mod = sys.modules.get("benchmarks")
+    if mod is None:
+        spec = importlib.util.spec_from_file_location(
+            "benchmarks", init, submodule_search_locations=[str(pkg)])
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules["benchmarks"] = mod
+        try:
+            spec.loader.exec_module(mod)
+        except BaseException:
+            del sys.modules["benchmarks"]
+            raise
+    elif Path(getattr(mod, "__file__", None) or "").resolve() != init.resolve():
+        return None, (f"bench: another package named 'benchmarks' is already imported "
+                      f"({getattr(mod, '__file__', None)}), not {init}")
+    return importlib.import_module("benchmarks.bench"), None
+
+
+def _cmd_bench(rest: list[str]) -> int:
+    bench, why = _import_benchmarks()
+    if bench is None:
+        return _err(why)
     _enable_compilation_cache()
-    rc = _bench.main(rest)
+    rc = bench.main(rest)
     return int(rc) if rc is not None else 0
 
 

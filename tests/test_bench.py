@@ -6,7 +6,8 @@ from __future__ import annotations
 import json
 import math
 
-from jaxvcm import _bench
+from benchmarks import _common
+from benchmarks import bench as _bench
 
 
 def _table(md: str, first_col: str) -> list[dict]:
@@ -108,13 +109,13 @@ def test_bench_vm_bad_arguments(capsys):
 def test_bench_vm_sections_and_figure(tmp_path):
     import numpy as np
 
-    from jaxvcm import _bench_vm
+    from benchmarks import vertex_merging as _bench_vm
 
     md = tmp_path / "b.md"
     md.write_text("# title\n\nhand-written text\n")
-    _bench_vm.upsert_section(md, "mis-forms", "first\n")
-    _bench_vm.upsert_section(md, "equal-time", "table\n")
-    _bench_vm.upsert_section(md, "mis-forms", "second\n")
+    _common.upsert_section(md, "mis-forms", "first\n")
+    _common.upsert_section(md, "equal-time", "table\n")
+    _common.upsert_section(md, "mis-forms", "second\n")
     text = md.read_text()
     assert text.startswith("# title\n\nhand-written text\n")
     assert "first" not in text and text.count("<!-- bench:mis-forms:begin -->") == 1
@@ -133,7 +134,7 @@ def test_report_merge_keeps_hand_written_text_and_adds_no_marker_from_the_header
     # A run replaces only its own section (in place) and the generated header; the header's
     # description of the markers must not itself parse as a section (it once did, adding an
     # empty block on every run), and hand-written sections outside the markers survive.
-    from jaxvcm._bench import _SECTION_RE, HEADER, _merge_markdown
+    from benchmarks.bench import _SECTION_RE, HEADER, _merge_markdown
 
     header = HEADER.format(json="benchmarks.json", off=1, eps=0.01, depth=8, tscene="pool",
                            target=1.5, tcpu=2, machine="- m")

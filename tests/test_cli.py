@@ -94,20 +94,22 @@ def test_bad_arguments_one_line(args, capsys, tmp_path, monkeypatch):
     assert not list(tmp_path.iterdir())
 
 
-def test_bench_missing_or_delegated(capsys, monkeypatch):
-    import types
+def test_bench_missing_or_delegated(capsys, monkeypatch, tmp_path):
+    # `jaxvcm bench` runs benchmarks/bench.py of the checkout beside jaxvcm/ ...
+    import benchmarks.bench
+
+    from jaxvcm import cli
 
     calls = []
-    fake = types.ModuleType("jaxvcm._bench")
-    fake.main = lambda argv: calls.append(argv) or 0
-    monkeypatch.setitem(sys.modules, "jaxvcm._bench", fake)
+    monkeypatch.setattr(benchmarks.bench, "main", lambda argv: calls.append(argv) or 0)
     assert main(["bench", "--foo", "1"]) == 0
     assert calls == [["--foo", "1"]]
-    monkeypatch.setitem(sys.modules, "jaxvcm._bench", None)  # import fails
+    # ... and fails with one line when there is none (an install without the checkout)
+    monkeypatch.setattr(cli, "_benchmarks_dir", lambda: tmp_path / "benchmarks")
     rc = main(["bench"])
     _, err = capsys.readouterr()
     assert rc == 2
-    assert _one_line(err).startswith("jaxvcm: error: bench")
+    assert _one_line(err).startswith("jaxvcm: error: bench: ")
 
 
 # ------------------------------------------------------------------ film

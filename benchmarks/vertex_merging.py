@@ -19,14 +19,17 @@ file is touched) and its numbers into `<out stem>_<TAG>.json` next to it.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import re
 import tempfile
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
+
+import jaxvcm
+
+from . import _common as C
 
 MIS_DEFAULT_SCENES = ("pool.toml", "pool_sun.toml")
 MIS_DEFAULT_ALGORITHMS = ("vcm", "bdpt")
@@ -43,11 +46,7 @@ VCM_TARGET_PATHS_PER_S = 1.14e6  # issue 4's target for VCM on the 2-core machin
 # ----------------------------------------------------------------------------- helpers
 def _pass(scene, key, config, index):
     """One host pass (overflow re-runs with more room); returns (image, diag, config)."""
-    import jax
-
-    from ._render import render_pass_host
-
-    img, diag, config = render_pass_host(scene, key, config, index)
+    img, diag, config = jaxvcm.render_pass_host(scene, key, config, index)
     return jax.block_until_ready(img), diag, config
 
 
@@ -55,41 +54,16 @@ def _total_paths(diag) -> int:
     return int(diag.camera_paths) + int(diag.light_paths)
 
 
-def upsert_section(path: Path, tag: str, body: str) -> None:
-    """Replace the `tag` section of the markdown file in place, or append it at the end;
-    the rest of the file is left byte for byte as it was."""
-    from ._bench import _read, _write_text
-
-    old = _read(path)
-    block = f"<!-- bench:{tag}:begin -->\n{body.rstrip()}\n<!-- bench:{tag}:end -->\n"
-    pat = re.compile(rf"<!-- bench:{re.escape(tag)}:begin -->\n.*?"
-                     rf"<!-- bench:{re.escape(tag)}:end -->\n?", re.S)
-    if pat.search(old):
-        new = pat.sub(lambda m: block, old, count=1)
-    else:
-        new = old + ("" if old.endswith("\n") or not old else "\n") + ("\n" if old else "") + block
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _write_text(path, new)
-
-
-def _write_json(path: Path, obj) -> None:
-    from ._bench import _json_default, _write_text
-
-    _write_text(path, json.dumps(obj, indent=1, default=_json_default) + "\n")
-
-
 # ----------------------------------------------------------------------------- MIS forms
 def compare_mis(scene, config, seed: int, pairs: int) -> dict:
     """Interleaved timing of the explicit and recursive MIS forms of `config` on `scene`.
     Both are compiled and run once before timing; then pass i of both forms (same key, same
     pass index) alternates, the first form of each pair alternating too (A B, B A, ...)."""
-    from ._render import pass_key
-
     cfgs = {f: dataclasses.replace(config, mis_form=f) for f in ("explicit", "recursive")}
     warm = {}
     for f in cfgs:
         t0 = time.perf_counter()
-        _, _, cfgs[f] = _pass(scene, pass_key(seed, 0), cfgs[f], 0)
+        _, _, cfgs[f] = _pass(scene, jaxvcm.pass_key(seed, 0), cfgs[f], 0)
         warm[f] = time.perf_counter() - t0
     times = {f: [] for f in cfgs}
     acc = {f: None for f in cfgs}
@@ -98,7 +72,7 @@ def compare_mis(scene, config, seed: int, pairs: int) -> dict:
     for i in range(pairs):
         for f in (order if i % 2 == 0 else order[::-1]):
             t0 = time.perf_counter()
-            img, diag, cfgs[f] = _pass(scene, pass_key(seed, i), cfgs[f], i)
+            img, diag, cfgs[f] = _pass(scene, jaxvcm.pass_key(seed, i), cfgs[f], i)
             times[f].append(time.perf_counter() - t0)
             img = np.asarray(img, dtype=np.float64)
             acc[f] = img if acc[f] is None else acc[f] + img
@@ -118,18 +92,13 @@ def compare_mis(scene, config, seed: int, pairs: int) -> dict:
 
 
 def run_compare_mis(a, argv, log) -> dict:
-    import jaxvcm
-
-    from ._bench import _machine, _machine_line
-    from ._config import RenderConfig
-
-    res = {"machine": _machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
+    res = {"machine": C.machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
            "size": a.size, "max_depth": a.max_depth, "pairs": a.mis_pairs, "seed": a.seed,
            "rows": []}
     for path in a.scene_paths:
         scene = jaxvcm.load_scene(path, width=a.size, height=a.size)
         for alg in a.algorithms:
-            cfg = RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=a.max_depth)
             log(f"mis forms: {path.stem} {alg} {a.size}x{a.size} d{a.max_depth}: "
                 f"compiling both forms, then {a.mis_pairs} interleaved pairs")
             r = compare_mis(scene, cfg, a.seed, a.mis_pairs)
@@ -138,9 +107,9 @@ def run_compare_mis(a, argv, log) -> dict:
             log(f"  explicit {r['median_s']['explicit']:.3f} s, recursive "
                 f"{r['median_s']['recursive']:.3f} s, ratio {r['ratio']:.3f}, "
                 f"max rel diff {r['max_rel_diff']:.3g}")
-    body = mis_markdown(res, _machine_line(res["machine"]))
-    upsert_section(a.out, "mis-forms", body)
-    _write_json(a.out.with_name(f"{a.out.stem}_mis-forms.json"), res)
+    body = mis_markdown(res, C.machine_line(res["machine"]))
+    C.upsert_section(a.out, "mis-forms", body)
+    C.write_json(a.out.with_name(f"{a.out.stem}_mis-forms.json"), res)
     print(body)
     return res
 
@@ -172,15 +141,13 @@ def mis_markdown(res: dict, machine_line: str) -> str:
 def equal_time_render(scene, config, seed: int, budget: float) -> dict:
     """Average passes for `budget` wall seconds after a warm-up pass: a new pass starts only
     while the elapsed time plus the mean pass time so far fits the budget (>= 1 pass)."""
-    from ._render import pass_key
-
     t0 = time.perf_counter()
-    _, _, config = _pass(scene, pass_key(seed, 0), config, 0)
+    _, _, config = _pass(scene, jaxvcm.pass_key(seed, 0), config, 0)
     warm = time.perf_counter() - t0
     acc, i, cam, light, nonfinite = None, 0, 0, 0, 0
     t0 = time.perf_counter()
     while True:
-        img, diag, config = _pass(scene, pass_key(seed, i), config, i)
+        img, diag, config = _pass(scene, jaxvcm.pass_key(seed, i), config, i)
         img = np.asarray(img, dtype=np.float64)
         acc = img if acc is None else acc + img
         cam += int(diag.camera_paths)
@@ -204,9 +171,7 @@ def row_exposure(images) -> float:
 
 
 def equal_time_figure(path: Path, grid: list[list[dict]], scenes, algorithms) -> None:
-    from matplotlib.figure import Figure
-
-    from ._io import atomic_path as _atomic, to_srgb8
+    from matplotlib.figure import Figure  # slow import, only when drawing
 
     nr, nc = len(grid), len(grid[0])
     fig = Figure(figsize=(2.6 * nc, 2.75 * nr + 0.3), dpi=110)
@@ -214,7 +179,7 @@ def equal_time_figure(path: Path, grid: list[list[dict]], scenes, algorithms) ->
         ev = row_exposure([p["image"] for p in row])
         for c, p in enumerate(row):
             ax = fig.add_subplot(nr, nc, r * nc + c + 1)
-            ax.imshow(to_srgb8(p["image"].astype(np.float32), ev), interpolation="nearest")
+            ax.imshow(jaxvcm.to_srgb8(p["image"].astype(np.float32), ev), interpolation="nearest")
             ax.set_xticks([])
             ax.set_yticks([])
             ax.set_title(f"{algorithms[c]}: {p['passes']} passes, {p['seconds']:.1f} s",
@@ -222,17 +187,12 @@ def equal_time_figure(path: Path, grid: list[list[dict]], scenes, algorithms) ->
             if c == 0:
                 ax.set_ylabel(f"{scenes[r]} ({ev:+.1f} EV)", fontsize=9)
     fig.tight_layout()
-    with _atomic(str(path)) as tmp:
+    with jaxvcm.atomic_path(str(path)) as tmp:
         fig.savefig(tmp, format="png")
 
 
 def run_equal_time(a, argv, log) -> dict:
-    import jaxvcm
-
-    from ._bench import _machine, _machine_line
-    from ._config import RenderConfig
-
-    res = {"machine": _machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
+    res = {"machine": C.machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
            "size": a.size, "max_depth": a.max_depth, "budget_s": a.equal_time, "seed": a.seed,
            "scenes": [p.stem for p in a.scene_paths], "algorithms": a.algorithms, "rows": []}
     fig = a.out.parent / ET_FIGURE
@@ -242,7 +202,7 @@ def run_equal_time(a, argv, log) -> dict:
         scene = jaxvcm.load_scene(path, width=a.size, height=a.size)
         row = []
         for alg in a.algorithms:
-            cfg = RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=a.max_depth)
             log(f"equal time: {path.stem} {alg} {a.size}x{a.size} d{a.max_depth}, "
                 f"{a.equal_time:g} s")
             p = equal_time_render(scene, cfg, a.seed, a.equal_time)
@@ -259,9 +219,9 @@ def run_equal_time(a, argv, log) -> dict:
         log(f"images so far -> {npz}")
     equal_time_figure(fig, grid, res["scenes"], a.algorithms)
     log(f"figure -> {fig}")
-    body = equal_time_markdown(res, _machine_line(res["machine"]), fig.name)
-    upsert_section(a.out, "equal-time", body)
-    _write_json(a.out.with_name(f"{a.out.stem}_equal-time.json"), res)
+    body = equal_time_markdown(res, C.machine_line(res["machine"]), fig.name)
+    C.upsert_section(a.out, "equal-time", body)
+    C.write_json(a.out.with_name(f"{a.out.stem}_equal-time.json"), res)
     print(body)
     return res
 

@@ -15,9 +15,13 @@ as the cost floor.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
+import jax
 import numpy as np
+
+import jaxvcm
+
+from . import _common as C
 
 MODES = ("off", "hero", "exact")
 DEFAULT_SCENES = ("pool_sun.toml",)
@@ -34,16 +38,13 @@ def _block_y(xyz, b=4):
 
 
 def compare_dispersion(scene, config, seed: int, rounds: int) -> dict:
-    import jax
-
-    from ._render import pass_key
-    from ._spectral import _render_pass_spectral_jit, spectral_scene
-
-    ss = {m: spectral_scene(scene, n_wavelengths=WAVELENGTHS, dispersion=m) for m in MODES}
+    ss = {m: jaxvcm.spectral_scene(scene, n_wavelengths=WAVELENGTHS, dispersion=m)
+          for m in MODES}
     warm = {}
     for m in MODES:
         t0 = time.perf_counter()
-        jax.block_until_ready(_render_pass_spectral_jit(ss[m], pass_key(seed, 0), config, 0))
+        jax.block_until_ready(
+            jaxvcm.render_pass_spectral_jit(ss[m], jaxvcm.pass_key(seed, 0), config, 0))
         warm[m] = time.perf_counter() - t0
     times = {m: [] for m in MODES}
     blocks = {m: [] for m in MODES}
@@ -52,7 +53,8 @@ def compare_dispersion(scene, config, seed: int, rounds: int) -> dict:
         order = MODES[i % 3:] + MODES[:i % 3]
         for m in order:
             t0 = time.perf_counter()
-            xyz, diag = _render_pass_spectral_jit(ss[m], pass_key(seed, 1 + i), config, 1 + i)
+            xyz, diag = jaxvcm.render_pass_spectral_jit(ss[m], jaxvcm.pass_key(seed, 1 + i),
+                                                        config, 1 + i)
             xyz = jax.block_until_ready(xyz)
             times[m].append(time.perf_counter() - t0)
             blocks[m].append(_block_y(xyz))
@@ -72,27 +74,22 @@ def compare_dispersion(scene, config, seed: int, rounds: int) -> dict:
 
 
 def run_dispersion(a, argv, log) -> dict:
-    import jaxvcm
-
-    from ._bench import _machine, _machine_line
-    from ._bench_vm import _write_json, upsert_section
-    from ._config import RenderConfig
-
-    res = {"machine": _machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
+    res = {"machine": C.machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
            "size": a.size, "max_depth": a.max_depth, "rounds": a.mis_pairs, "seed": a.seed,
            "wavelengths": WAVELENGTHS, "rows": []}
     for path in a.scene_paths:
         scene = jaxvcm.load_scene(path, width=a.size, height=a.size)
         for alg in a.algorithms:
-            cfg = RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=a.max_depth)
             log(f"dispersion: {path.stem} {alg} {a.size}x{a.size} d{a.max_depth}: compiling "
                 f"off / hero / exact, then {a.mis_pairs} interleaved rounds")
             r = compare_dispersion(scene, cfg, a.seed, a.mis_pairs)
             res["rows"].append({"scene": path.stem, "algorithm": alg, **r})
             log("  " + ", ".join(f"{m} {r['median_s'][m]:.3f} s/pass rel.sd "
                                  f"{r['rel_sd'][m]:.3g}" for m in MODES))
-    upsert_section(a.out, "dispersion", dispersion_markdown(res, _machine_line(res["machine"])))
-    _write_json(a.out.with_name(f"{a.out.stem}_dispersion.json"), res)
+    C.upsert_section(a.out, "dispersion",
+                     dispersion_markdown(res, C.machine_line(res["machine"])))
+    C.write_json(a.out.with_name(f"{a.out.stem}_dispersion.json"), res)
     log(f"report -> {a.out}")
     return res
 
@@ -115,7 +112,3 @@ def dispersion_markdown(res: dict, machine_line: str) -> str:
                      f"{r['median_s'][m] / r['median_s']['off']:.2f} | {r['rel_sd'][m]:.3g} | "
                      f"{r['mean_y'][m]:.4g} | {r['efficiency_vs_exact'][m]:.2f} |")
     return "\n".join(L) + "\n"
-
-
-def default_scenes() -> list[str]:
-    return [str(Path("scenes") / s) for s in DEFAULT_SCENES]

@@ -1,4 +1,5 @@
 """`jaxvcm bench`: the speed-vs-error report (docs/benchmarks.md + docs/bench_<scene>.png).
+Also `python -m benchmarks.bench ...` from the repository root.
 
 For every (scene, algorithm) the scene is rendered progressively (independent passes
 `pass_key(seed, i)`, accumulated in float64 on the host) and the running image is sampled
@@ -17,28 +18,31 @@ new one). They use a seed different from the measured renders, so their samples 
 independent.
 
 `--compare-mis` (explicit vs recursive MIS seconds per pass) and `--equal-time SEC`
-(equal-time image grid) are the vertex-merging modes of `jaxvcm._bench_vm`.
+(equal-time image grid) are the vertex-merging modes of `benchmarks/vertex_merging.py`;
+`--dispersion` (spectral dispersion modes) is in `benchmarks/spectral.py`.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import hashlib
 import json
 import math
-import os
-import platform
 import re
 import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
-from . import _bench_spectral as _sp
-from . import _bench_vm as _vm
+import jaxvcm
+from jaxvcm import __version__
+
+from . import _common as C
+from . import spectral as _sp
+from . import vertex_merging as _vm
 
 PROG = "jaxvcm bench"
 DEFAULT_SCENES = ("pool.toml", "pool_sun.toml", "pool_sky.toml", "pool_wall.toml")
@@ -177,7 +181,7 @@ def _parser() -> argparse.ArgumentParser:
 
 # ----------------------------------------------------------------------------- helpers
 def repo_root() -> Path:
-    """The checkout this package lives in (parent of the package dir) if it has scenes/,
+    """The checkout benchmarks/ lives in (parent of benchmarks/) if it has scenes/,
     otherwise the current directory."""
     root = Path(__file__).resolve().parent.parent
     return root if (root / "scenes").is_dir() else Path.cwd()
@@ -206,15 +210,6 @@ def _split_list(items) -> list[str]:
     return out
 
 
-class _Log:
-    def __init__(self, quiet: bool):
-        self.quiet = quiet
-
-    def __call__(self, msg: str) -> None:
-        if not self.quiet:
-            print(f"bench: {msg}", file=sys.stderr, flush=True)
-
-
 def _metrics(img: np.ndarray, ref: np.ndarray) -> dict:
     d = img - ref
     rmse = float(np.sqrt(np.mean(d * d)))
@@ -233,8 +228,6 @@ def _paths(diag) -> tuple[int, int | None]:
 
 
 def _ready(x):
-    import jax
-
     return jax.block_until_ready(x)
 
 
@@ -242,18 +235,14 @@ def _ready(x):
 def _pass(scene, key, config, index):
     """One pass as `jaxvcm render` does it: the pass index drives the merging radius, and
     a merging overflow re-runs the pass with more room (never a truncated estimate)."""
-    from ._render import render_pass_host
-
-    img, diag, _ = render_pass_host(scene, key, config, index)
+    img, diag, _ = jaxvcm.render_pass_host(scene, key, config, index)
     return img, diag
 
 
 def _warm_up(scene, config, seed: int) -> float:
     """Compile (or load from the persistent cache) and run one pass; returns its seconds."""
-    from ._render import pass_key
-
     t0 = time.perf_counter()
-    _ready(_pass(scene, pass_key(seed, 0), config, 0))
+    _ready(_pass(scene, jaxvcm.pass_key(seed, 0), config, 0))
     return time.perf_counter() - t0
 
 
@@ -261,8 +250,6 @@ def _budget_run(scene, config, seed: int, budgets) -> list[dict]:
     """One progressive render sampled at each budget: for budget B, the image after the
     last pass completed at or before B seconds (the first pass if even that took longer).
     Returns one dict per budget with passes, seconds, path counts and the image."""
-    from ._render import pass_key
-
     budgets = sorted(budgets)
     out: list[dict] = []
     acc = None
@@ -273,7 +260,7 @@ def _budget_run(scene, config, seed: int, budgets) -> list[dict]:
     i = 0
     t0 = time.perf_counter()
     while len(out) < len(budgets):
-        img, diag = _pass(scene, pass_key(seed, i), config, i)
+        img, diag = _pass(scene, jaxvcm.pass_key(seed, i), config, i)
         img = np.asarray(_ready(img), dtype=np.float64)
         cam, light = _paths(diag)
         nonfinite += int(diag.nonfinite)
@@ -302,12 +289,10 @@ def _budget_row(budget, snap, over: bool) -> dict:
 
 def _throughput(scene, config, seed: int, passes: int) -> dict:
     """Median wall seconds of `passes` single passes (each waited for; no host copy)."""
-    from ._render import pass_key
-
     times, cams, lights = [], [], []
     for i in range(passes):
         t0 = time.perf_counter()
-        img, diag = _ready(_pass(scene, pass_key(seed, i), config, i))
+        img, diag = _ready(_pass(scene, jaxvcm.pass_key(seed, i), config, i))
         times.append(time.perf_counter() - t0)
         c, lp = _paths(diag)
         cams.append(c)
@@ -331,8 +316,6 @@ def _ref_paths(ref_dir: Path, stem: str, alg: str, w: int, h: int, depth: int):
 def _load_reference(exr: Path, side: Path, want: dict, req_passes, req_time, shape,
                     forbidden_seed: int):
     """The stored reference if it matches `want` and is long enough, else None (+ why)."""
-    from ._io import read_exr
-
     if not (exr.is_file() and side.is_file()):
         return None, "none stored"
     try:
@@ -349,7 +332,7 @@ def _load_reference(exr: Path, side: Path, want: dict, req_passes, req_time, sha
     if req_time is not None and float(meta.get("seconds", 0.0)) < 0.95 * req_time:
         return None, f"only {meta.get('seconds')} s < {req_time:g} s"
     try:
-        img = read_exr(str(exr)).astype(np.float64)
+        img = jaxvcm.read_exr(str(exr)).astype(np.float64)
     except (OSError, ValueError) as e:
         return None, f"unreadable EXR ({e})"
     if img.shape != shape:
@@ -360,8 +343,6 @@ def _load_reference(exr: Path, side: Path, want: dict, req_passes, req_time, sha
 def _render_reference(scene, config, seed: int, req_passes, req_time, log, label) -> tuple:
     """Average passes (float64) for `req_passes` passes or `req_time` seconds (>= 2
     passes), keeping the even and odd passes apart to estimate the reference's noise."""
-    from ._render import pass_key
-
     acc = [None, None]
     n = [0, 0]
     nonfinite = 0
@@ -369,7 +350,7 @@ def _render_reference(scene, config, seed: int, req_passes, req_time, log, label
     last = t0
     i = 0
     while True:
-        img, diag = _pass(scene, pass_key(seed, i), config, i)
+        img, diag = _pass(scene, jaxvcm.pass_key(seed, i), config, i)
         img = np.asarray(_ready(img), dtype=np.float64)
         nonfinite += int(diag.nonfinite)
         k = i % 2
@@ -393,11 +374,7 @@ def _render_reference(scene, config, seed: int, req_passes, req_time, log, label
 
 
 def _get_reference(a, scene_path: Path, scene, stem: str, sha: str, log) -> tuple:
-    from . import __version__
-    from ._config import RenderConfig
-    from ._io import write_outputs
-
-    config = RenderConfig(algorithm=a.reference_algorithm, max_depth=a.max_depth)
+    config = jaxvcm.RenderConfig(algorithm=a.reference_algorithm, max_depth=a.max_depth)
     w, h = scene.camera.width, scene.camera.height
     ref_seed = a.seed + REF_SEED_OFFSET
     exr, side = _ref_paths(a.reference_dir, stem, config.algorithm, w, h, config.max_depth)
@@ -427,35 +404,16 @@ def _get_reference(a, scene_path: Path, scene, stem: str, sha: str, log) -> tupl
         "request": ({"passes": a.reference_passes} if a.reference_passes
                     else {"seconds": a.reference_time}),
         **info, "noise_rel_rmse": info["noise_rmse"] / mean if mean > 0 else None,
-        "mean": mean, "version": __version__, "date": _now(),
+        "mean": mean, "version": __version__, "date": C.now(),
     })
     a.reference_dir.mkdir(parents=True, exist_ok=True)
-    write_outputs(str(exr), img.astype(np.float32), meta)
+    jaxvcm.write_outputs(str(exr), img.astype(np.float32), meta)
     log(f"{label}: {info['passes']} passes in {info['seconds']} s -> {exr}")
     # use exactly what later runs will read back (float32)
     return img.astype(np.float32).astype(np.float64), meta, False
 
 
 # ----------------------------------------------------------------------------- report
-def _now() -> str:
-    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-
-
-def _machine() -> dict:
-    import jax
-
-    from . import __version__
-
-    try:
-        devices = [str(d) for d in jax.devices()]
-    except RuntimeError as e:  # pragma: no cover
-        devices = [f"unavailable ({e})"]
-    return {"date": _now(), "cpu_count": os.cpu_count(), "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "python": platform.python_version(), "jax": jax.__version__,
-            "devices": devices, "jaxvcm": __version__}
-
-
 def _fmt_rate(x) -> str:
     return "–" if x is None or not math.isfinite(x) else f"{x:,.0f}"
 
@@ -464,16 +422,10 @@ def _fmt_g(x, digits=4) -> str:
     return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}g}"
 
 
-def _machine_line(m: dict) -> str:
-    return (f"{m['date']}; os.cpu_count() = {m['cpu_count']}; {m['platform']} "
-            f"({m['processor']}); Python {m['python']}; jax {m['jax']}; devices: "
-            f"{', '.join(m['devices'])}; jaxvcm {m['jaxvcm']}")
-
-
 HEADER = """\
 # jaxvcm benchmarks: speed vs error
 
-Generated by `jaxvcm bench` (`jaxvcm/_bench.py`). Each run writes its own section between
+Generated by `jaxvcm bench` (`benchmarks/bench.py`). Each run writes its own section between
 HTML-comment markers `bench:TAG:begin` and `bench:TAG:end` (TAG: the algorithms, or
 `--tag`) and keeps everything else in this file, hand-written notes included; do not edit
 inside the markers by hand. The numbers
@@ -524,7 +476,7 @@ RMSE vs seconds, log-log, one line per algorithm) are drawn.
 def _section(tag: str, res: dict) -> str:
     m = res["machine"]
     L = [f"## Run `{tag}`", "",
-         f"- {_machine_line(m)}",
+         f"- {C.machine_line(m)}",
          f"- command: `{res['command']}`",
          f"- algorithms: {', '.join(res['algorithms'])}; seed {res['seed']}"]
     if res["throughput_only"]:
@@ -621,13 +573,6 @@ def _target_text(res: dict) -> str:
             f"= {ratio:.3g} x the target: {verdict}.{note}")
 
 
-def _read(path: Path) -> str:
-    try:
-        return path.read_text()
-    except FileNotFoundError:
-        return ""
-
-
 def _merge_markdown(old: str, header: str, tag: str, body: str) -> str:
     """`old` with its generated header (everything before the first section marker, when
     it is the generated one) regenerated and `tag`'s section replaced in place or appended;
@@ -647,19 +592,9 @@ def _merge_markdown(old: str, header: str, tag: str, body: str) -> str:
     return old.rstrip("\n") + "\n\n" + block
 
 
-def _write_text(path: Path, text: str) -> None:
-    from ._io import atomic_path
-
-    with atomic_path(str(path)) as tmp:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
-
-
 def _plot(path: Path, stem: str, all_results: dict) -> bool:
     """relRMSE vs seconds, log-log, one line per (tag, algorithm) that has errors for `stem`."""
-    from matplotlib.figure import Figure
-
-    from ._io import atomic_path
+    from matplotlib.figure import Figure  # slow import, only when plotting
 
     lines = []
     floors = []
@@ -697,7 +632,7 @@ def _plot(path: Path, stem: str, all_results: dict) -> bool:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(str(path)) as tmp:
+    with jaxvcm.atomic_path(str(path)) as tmp:
         fig.savefig(tmp, format="png")
     return True
 
@@ -707,34 +642,26 @@ def _publish(out: Path, tag: str, res: dict, log) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     side = out.with_suffix(".json")
     try:
-        allres = json.loads(_read(side) or "{}")
+        allres = json.loads(C.read_text(side) or "{}")
         if not isinstance(allres, dict):
             allres = {}
     except ValueError:
         allres = {}
     allres[tag] = res
-    _write_text(side, json.dumps(allres, indent=1, default=_json_default) + "\n")
+    C.write_json(side, allres)
     header = HEADER.format(json=side.name, off=REF_SEED_OFFSET, eps=REL_EPS,
                            depth=THROUGHPUT_DEPTH, tscene=TARGET_SCENE,
                            target=TARGET_PATHS_PER_S / 1e6, tcpu=TARGET_CPUS,
-                           machine="- " + _machine_line(res["machine"]))
-    _write_text(out, _merge_markdown(_read(out), header, tag, _section(tag, res)))
+                           machine="- " + C.machine_line(res["machine"]))
+    C.write_text(out, _merge_markdown(C.read_text(out), header, tag, _section(tag, res)))
     for stem in sorted({r["scene"] for r in res["rows"]}):
         png = out.parent / f"bench_{stem}.png"
         if _plot(png, stem, allres):
             log(f"plot -> {png}")
 
 
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
-
-
 # ----------------------------------------------------------------------------- main
 def _settings(argv):
-    from ._config import ALGORITHMS
-
     a = _parser().parse_args(argv)
     a.mode = ("compare-mis" if a.compare_mis else "equal-time" if a.equal_time
               else "dispersion" if a.dispersion else None)
@@ -749,8 +676,8 @@ def _settings(argv):
                  "dispersion": list(_sp.DEFAULT_ALGORITHMS)}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
-        if alg not in ALGORITHMS:
-            raise _Usage(f"unknown algorithm {alg!r}; one of {', '.join(ALGORITHMS)}")
+        if alg not in jaxvcm.ALGORITHMS:
+            raise _Usage(f"unknown algorithm {alg!r}; one of {', '.join(jaxvcm.ALGORITHMS)}")
     a.algorithms = list(dict.fromkeys(a.algorithms))
     root = repo_root()
     mode_scenes = {"compare-mis": _vm.MIS_DEFAULT_SCENES,
@@ -785,13 +712,9 @@ def _settings(argv):
 
 def run(a, argv) -> dict:
     """Run the benchmark described by the parsed settings `a`; returns the results."""
-    import jaxvcm
-
-    from ._config import RenderConfig
-
-    log = _Log(a.quiet)
+    log = C.Log(a.quiet)
     res = {
-        "machine": _machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
+        "machine": C.machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
         "algorithms": a.algorithms, "seed": a.seed, "throughput_only": a.throughput_only,
         "size_desc": "scene's own" if a.full_size else f"{a.size}x{a.size}",
         "max_depth": a.max_depth, "budgets": list(a.budgets),
@@ -813,7 +736,7 @@ def run(a, argv) -> dict:
                 "algorithm", "width", "height", "max_depth", "passes", "seconds", "seed",
                 "noise_rmse", "noise_rel_rmse", "mean")}, "reused": reused}
         for alg in a.algorithms:
-            config = RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            config = jaxvcm.RenderConfig(algorithm=alg, max_depth=a.max_depth)
             tw = _warm_up(scene, config, a.seed)
             log(f"{stem} {alg} {w}x{h} d{a.max_depth}: warm-up {tw:.2f} s; timing "
                 f"{max(a.budgets):g} s")
@@ -832,7 +755,7 @@ def run(a, argv) -> dict:
             tscene = jaxvcm.load_scene(path, **tsize)
             tw_, th_ = tscene.camera.width, tscene.camera.height
             for alg in a.algorithms:
-                config = RenderConfig(algorithm=alg, max_depth=THROUGHPUT_DEPTH)
+                config = jaxvcm.RenderConfig(algorithm=alg, max_depth=THROUGHPUT_DEPTH)
                 _warm_up(tscene, config, a.seed)
                 r = _throughput(tscene, config, a.seed, a.throughput_passes)
                 res["throughput"].append({
@@ -854,18 +777,16 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as e:
         print(f"jaxvcm: error: bench: {' '.join(str(e).split())}", file=sys.stderr, flush=True)
         return 2
-    from .cli import _enable_compilation_cache
-
-    _enable_compilation_cache()  # leaves an already configured cache alone
+    jaxvcm.enable_compilation_cache()  # leaves an already configured cache alone
     try:
         if a.mode == "compare-mis":
-            _vm.run_compare_mis(a, argv, _Log(a.quiet))
+            _vm.run_compare_mis(a, argv, C.Log(a.quiet))
             return 0
         if a.mode == "equal-time":
-            _vm.run_equal_time(a, argv, _Log(a.quiet))
+            _vm.run_equal_time(a, argv, C.Log(a.quiet))
             return 0
         if a.mode == "dispersion":
-            _sp.run_dispersion(a, argv, _Log(a.quiet))
+            _sp.run_dispersion(a, argv, C.Log(a.quiet))
             return 0
         res = run(a, argv)
     except (ValueError, OSError) as e:  # e.g. a malformed scene file: one line, status 2
@@ -875,3 +796,7 @@ def main(argv: list[str] | None = None) -> int:
         print(_target_text(res))
     print(a.out)
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,7 +1,11 @@
 """Timings behind docs/hashgrid.md: sorting strategies, hash grid build and query.
 
-    python -m jaxvcm._hashgrid_bench [--sort-sizes 65536,262144,1048576,4194304]
-                                     [--grid-sizes 65536,262144,1048576] [--repeats 5]
+    python -m benchmarks.hashgrid [--sort-sizes 65536,262144,1048576,4194304]
+                                  [--grid-sizes 65536,262144,1048576] [--repeats 5]
+
+(from the repository root). The grid is `jaxvcm.hashgrid_build` / `hashgrid_query_reduce` /
+`hashgrid_sort_order`; the fixed-K `query` and `candidate_counts` are the test helpers of
+tests/_hashgrid_oracles.py (built on the grid's private blocks, so they stay with the tests).
 
 Every function is compiled ahead of time (`jit(...).lower(...).compile()`), then run
 `repeats` times with `block_until_ready`; the median is reported in milliseconds. Keys are
@@ -22,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import _hashgrid as HG
+import jaxvcm
+from tests import _hashgrid_oracles as HO
 
 
 def _median_ms(fn, args, repeats: int, with_output=False):
@@ -49,7 +54,7 @@ def _sort_key_iota(h):
 
 
 def _sort_packed(h):
-    return HG.sort_order(h, h.shape[0])  # uint64 (x64) single-operand sort
+    return jaxvcm.hashgrid_sort_order(h, h.shape[0])  # uint64 (x64) single-operand sort
 
 
 def _counting_scan(h):
@@ -110,18 +115,18 @@ def bench_grid(sizes, repeats, k=64):
         p = [jnp.asarray(a) for a in rng.random((3, m), dtype=np.float32)]
         q = [jnp.asarray(a) for a in rng.random((3, m), dtype=np.float32)]
         r = np.float32((30 / (4 / 3 * np.pi * m)) ** (1 / 3))
-        build = _compiled(partial(HG.build, table_size=m), *p, None, r)
+        build = _compiled(partial(jaxvcm.hashgrid_build, table_size=m), *p, None, r)
         grid = build(*p, None, r)
         reps = repeats if m <= 262144 else 1 if m > 1048576 else max(1, repeats // 3)
         row = {"M = Q": m, "r": float(r), "build": _median_ms(build, (*p, None, r), repeats)}
-        cand = np.asarray(HG.candidate_counts(grid, *q))
-        query = _compiled(partial(HG.query, max_neighbours=k), grid, *q)
+        cand = np.asarray(HO.candidate_counts(grid, *q))
+        query = _compiled(partial(HO.query, max_neighbours=k), grid, *q)
         row["query (K=64)"], (idx, count, overflow) = _median_ms(query, (grid, *q), reps, True)
 
         def fn(qi, pj, d2):
             return jnp.ones_like(d2) - d2  # a stand-in kernel
 
-        red = _compiled(partial(HG.query_reduce, fn=fn), grid, *q)
+        red = _compiled(partial(jaxvcm.hashgrid_query_reduce, fn=fn), grid, *q)
         row["query_reduce"] = _median_ms(red, (grid, *q), reps)
         row.update({"mean neighbours": float(np.mean(np.asarray(count))),
                     "max neighbours": int(np.max(np.asarray(count))),
