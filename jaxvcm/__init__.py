@@ -4,12 +4,13 @@ __version__ = "0.1.0"
 
 from ._bidir import technique_images as technique_images
 from ._config import RenderConfig as RenderConfig
+from ._fit import FitConfigError as FitConfigError
 from ._fit import FitResult as FitResult
 from ._fit import Region as Region
 from ._fit import fit as fit
 from ._fit import load_fit_config as load_fit_config
-from ._fit_spectral import SpectralFitResult as SpectralFitResult
-from ._fit_spectral import fit_spectral as fit_spectral
+from ._fit import SpectralFitResult as SpectralFitResult
+from ._fit import fit_spectral as fit_spectral
 from ._loader import SceneError as SceneError
 from ._loader import load_scene as load_scene
 from ._loader import scene_from_dict as scene_from_dict

@@ -52,9 +52,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import RenderConfig
-from ._render import pass_key, render_pass
-from ._scene import Scene
+from .._config import RenderConfig
+from .._render import pass_key, render_pass
+from .._scene import Scene
 
 SPACES = ("srgb", "xyz", "lab")
 FREE = ("both", "sigma_a", "sigma_s")  # which coefficients a fit adjusts
@@ -620,7 +620,7 @@ def load_fit_config(path) -> dict:
     import os
     import tomllib
 
-    from ._loader import _Ctx, scene_from_dict
+    from .._loader import _Ctx, scene_from_dict
 
     src = os.fspath(path)
 
@@ -650,7 +650,7 @@ def load_fit_config(path) -> dict:
     r = doc.get("render", {})
     ctx.table(r, {"algorithm", "max_depth", "rr_depth", "radius", "passes", "seed", "width",
                   "height"}, set(), "render")
-    from ._config import ALGORITHMS
+    from .._config import ALGORITHMS
 
     cfg = {"algorithm": ctx.string(r.get("algorithm", "pt"), "render.algorithm", ALGORITHMS)}
     for k in ("max_depth", "rr_depth"):
@@ -751,8 +751,8 @@ def load_fit_config(path) -> dict:
     if not all(math.isfinite(x) for r in regions for x in r.target):  # pragma: no cover
         ctx.fail("regions", "targets must be finite")
     if spectral:
-        from ._spectral import spectral_scene
-        from ._water_optics import WaterModel
+        from .._spectral import spectral_scene
+        from .._water_optics import WaterModel
 
         model = WaterModel(**sp["water"])
         try:
@@ -771,7 +771,7 @@ def load_fit_config(path) -> dict:
 def _spectral_settings(ctx, doc) -> dict:
     """The spectral-only parts of a fit config: params, linear, [spectral], [water], [init],
     [truth] (validated; one-line errors naming the field)."""
-    from ._fit_spectral import PARAMS
+    from ._spectral import PARAMS
 
     def names(v, field):
         if not isinstance(v, list):

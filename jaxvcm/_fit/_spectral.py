@@ -33,11 +33,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import RenderConfig
-from ._fit import (Region, _colour_constants, _result_name, default_uncertainty, delta_e2000,
+from .._config import RenderConfig
+from ._rgb import (Region, _colour_constants, _result_name, default_uncertainty, delta_e2000,
                    plot_swatches_and_loss, xyz_to_lab)
-from ._render import pass_key
-from ._spectral import SpectralScene, render_pass_spectral
+from .._render import pass_key
+from .._spectral import SpectralScene, render_pass_spectral
 
 PARAMS = ("a_cdom", "S", "a_flat", "b_p", "n_p", "g", "a_w_scale")  # fittable WaterModel leaves
 
@@ -206,7 +206,7 @@ def fit_spectral(spectral, regions: Sequence[Region], params: Sequence[str] = ("
     import optimistix as optx
 
     t0 = _time.perf_counter()
-    from ._fit import _named, _resolve
+    from ._rgb import _named, _resolve
 
     spectral, snames = _named(spectral, SpectralScene)
     params = list(params)
@@ -331,7 +331,7 @@ def absorption_band(res: SpectralFitResult, lam, draws: int = 400, seed: int = 0
     """sigma_a(lam) of the fitted model, and its 16th/84th percentiles over `draws` samples of
     theta ~ N(theta_hat, Cov) (the Jacobian covariance): (mean curve, lo, hi) [len(lam)].
     Parameters not fitted stay at the model's values."""
-    from ._water_optics import WaterModel
+    from .._water_optics import WaterModel
 
     WaterModel = res.model_type or WaterModel  # noqa: N806
     lam = np.asarray(lam, np.float64)
@@ -365,7 +365,7 @@ def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ._water_optics import WaterModel, pope_fry_table
+    from .._water_optics import WaterModel, pope_fry_table
 
     WaterModel = res.model_type or WaterModel  # noqa: N806
     R = len(res.regions)
