@@ -35,3 +35,12 @@ from ._water_optics import pope_fry_table as pope_fry_table
 from ._water_optics import pure_water_absorption as pure_water_absorption
 from ._water_optics import pure_water_scattering as pure_water_scattering
 from ._water_optics import water_ior as water_ior
+
+# fits' needs
+from ._fit import delta_e2000 as delta_e2000
+from ._fit import region_colours_fn as region_colours_fn
+from ._fit import spectral_region_colours_fn as spectral_region_colours_fn
+from ._fit import to_space as to_space
+from ._fit import write_outputs as write_outputs
+from ._fit import write_outputs_spectral as write_outputs_spectral
+from .cli import _enable_compilation_cache as enable_compilation_cache
