@@ -3,7 +3,7 @@ water, black walls; the test scenes of tests/test_caustics.py at a larger size) 
 by VCM and BDPT against the float64 NumPy ray-mapping reference (tests/_caustic_ref.py),
 seen from under the water and from above, plus the tile error of VCM vs passes.
 
-    python docs/make_caustics_figure.py [--size 64] [--passes 128]
+    python -m docs.make_caustics_figure [--size 64] [--passes 128]   # from the repo root
 
 Takes a few minutes on two cores (four compilations, then the passes). Also writes the
 numbers to docs/caustics_reference.json.
@@ -14,11 +14,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
 os.chdir(ROOT)
 
 import jax  # noqa: E402

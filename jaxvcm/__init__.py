@@ -4,12 +4,13 @@ __version__ = "0.1.0"
 
 from ._bidir import technique_images as technique_images
 from ._config import RenderConfig as RenderConfig
+from ._fit import FitConfigError as FitConfigError
 from ._fit import FitResult as FitResult
 from ._fit import Region as Region
 from ._fit import fit as fit
 from ._fit import load_fit_config as load_fit_config
-from ._fit_spectral import SpectralFitResult as SpectralFitResult
-from ._fit_spectral import fit_spectral as fit_spectral
+from ._fit import SpectralFitResult as SpectralFitResult
+from ._fit import fit_spectral as fit_spectral
 from ._io import SceneError as SceneError
 from ._io import load_scene as load_scene
 from ._io import scene_from_dict as scene_from_dict
@@ -46,3 +47,10 @@ from ._hashgrid import query_reduce as hashgrid_query_reduce
 from ._hashgrid import sort_order as hashgrid_sort_order
 from ._render import render_pass_host as render_pass_host
 from ._spectral import _render_pass_spectral_jit as render_pass_spectral_jit
+# fits' needs
+from ._fit import delta_e2000 as delta_e2000
+from ._fit import region_colours_fn as region_colours_fn
+from ._fit import spectral_region_colours_fn as spectral_region_colours_fn
+from ._fit import to_space as to_space
+from ._fit import write_outputs as write_fit_outputs
+from ._fit import write_outputs_spectral as write_spectral_fit_outputs

@@ -114,7 +114,7 @@ def _parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", help="fit water coefficients to target colours (fit.json + "
                        "fit.png); RGB or spectral (mode = \"spectral\"); config format: "
-                       "jaxvcm/_fit.py CONFIG_DOC")
+                       "jaxvcm/_fit/_config.py CONFIG_DOC")
     f.add_argument("config", metavar="CONFIG", help="fit config (.toml)")
     f.add_argument("--out", metavar="DIR", help="output directory (default out/<config>)")
     f.add_argument("--quiet", action="store_true", help="no per-step lines")
@@ -324,10 +324,8 @@ def _cmd_fit(a) -> int:
         raise ValueError(f"--out: {out!r} exists and is not a directory")
     _enable_compilation_cache()
     if kw.pop("mode", "rgb") == "spectral":
-        from . import _fit_spectral
-
-        res = _fit_spectral.fit_spectral(**kw, progress=not a.quiet)
-        jp, pp = _fit_spectral.write_outputs_spectral(res, out)
+        res = _fit.fit_spectral(**kw, progress=not a.quiet)
+        jp, pp = _fit.write_outputs_spectral(res, out)
     else:
         res = _fit.fit(**kw, progress=not a.quiet)
         jp, pp = _fit.write_outputs(res, out)

@@ -1,5 +1,6 @@
-"""Losses under caustic-firefly noise (`jaxvcm._fit_robust`), on toy images whose noise is
-planted by hand so that every expected value follows in closed form (no renderer: < 1 s).
+"""Losses under caustic-firefly noise (`fits/caustic_robustness/robust.py`), on toy images
+whose noise is planted by hand so that every expected value follows in closed form (no
+renderer: < 1 s).
 
 Toy model (the structure of a fixed-key render, see the module docstring): pixel p of a
 render is R_p(sigma) = n_p exp(-sigma l) (one water path length l = 2 m, unit expected
@@ -13,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxvcm import _fit_robust as fr
+from fits.caustic_robustness import robust as fr
 
 L = 2.0  # water path length (m)
 SIGMA_TRUE = 0.3  # 1/m

@@ -12,7 +12,7 @@ pixels x 16 passes has a Monte Carlo error of 4%.
 Target: the mean of 2048 passes at the true coefficients with keys independent of the
 fits' (seed 1000). Fits: sigma_a only (3 parameters, theta = ln sigma_a; sigma_s fixed at
 the truth), from (0.3, 0.1, 0.03), each with 16 fixed-key passes (seeds 0..K-1), by a host
-Levenberg-Marquardt (`jaxvcm._fit_robust.lm_fit`) on one compiled image+Jacobian program,
+Levenberg-Marquardt (`robust.lm_fit`, robust.py here) on one compiled image+Jacobian program,
 for these losses over the whole 32x32 image (FLOOR):
 
   pixel         every pixel its own residual, one common uncertainty (the image-L2 loss)
@@ -25,7 +25,7 @@ for these losses over the whole 32x32 image (FLOOR):
   decorr        per-pixel residuals, Jacobian from independent keys: passes 0-7 vs 8-15,
                 solving J_B^T r_A + J_A^T r_B = 0 (`decorrelated_fit`)
 
-Mechanism (see jaxvcm/_fit_robust.py): with fixed keys a residual's model value is
+Mechanism (see robust.py): with fixed keys a residual's model value is
 n g(theta) with a mean-1 noise factor n; least squares over the residuals scales g by
 s = sum w R T / sum w R^2 ~ 1 / (1 + var n) (R: fit render at the truth, T: target), i.e.
 sigma_a moves by ln(1 + var n) / L with L = -d ln(image sum) / d sigma_a (mean water path
@@ -37,7 +37,8 @@ var n by k.
 Also: the block16 loss through the library (`jaxvcm.fit`, optimistix) for seed 0, as a
 check that it finds the same solution.
 
-Usage: python fits/caustic_robustness/run.py [--seeds 6] [--passes 16] [--target-passes 2048]
+Usage (from the repo root):
+       python -m fits.caustic_robustness.run [--seeds 6] [--passes 16] [--target-passes 2048]
        [--resume] [--no-library] [--plot-only]
 Writes result.json, robustness.png here (the target's passes are cached in /tmp).
 The shipped result: --seeds 6 --target-passes 2048 (NOTES.md).
@@ -48,21 +49,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(os.path.dirname(HERE))
-sys.path.insert(0, ROOT)
+import jaxvcm
+from jaxvcm import Region, RenderConfig
 
-import jaxvcm  # noqa: E402
-from jaxvcm import RenderConfig  # noqa: E402
-from jaxvcm._fit import Region  # noqa: E402
-from jaxvcm import _fit_robust as fr  # noqa: E402
+from . import robust as fr
+
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 W = 32
 FLOOR = (0, 0, 32, 32)  # x0, y0, x1, y1: the whole frame (floor seen from under water)

@@ -9,7 +9,7 @@
    with sigma = a + b_b standing in for the particles): the best the model family can do
    without render noise, with the main fit's three terms, with a_cdom and b_p alone (no
    flat term), and with the CDOM slope S freed as well.
-Writes analysis.json here. Usage: python fits/jerlov_types/analysis.py [--types I,II]
+Writes analysis.json here. Usage (from the repo root): python -m fits.jerlov_types.analysis [--types I,II]
 """
 
 from __future__ import annotations
@@ -17,18 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(os.path.dirname(HERE))
-sys.path.insert(0, ROOT)
-sys.path.insert(0, HERE)
-
-import targets as T  # noqa: E402
-from run import DEPTHS, water_init  # noqa: E402
-from surrogate import pure_floor, surrogate_fit, surrogate_xyz  # noqa: E402
+from . import targets as T
+from .run import DEPTHS, water_init
+from .surrogate import pure_floor, surrogate_fit, surrogate_xyz
 
 
 def reachable_xyz(name, d):
@@ -55,7 +50,7 @@ def main():
              "surrogate_2p_no_flat": surrogate_fit(t, DEPTHS, water_init(P2), P2),
              "surrogate_3p_free_S": surrogate_fit(t, DEPTHS, water_init(P4), P4)}
         # where the Jerlov nodes fall below the pure-water floor (in K_d terms, mu_d at 0-)
-        from jaxvcm._water_optics import jerlov_table
+        from jaxvcm import jerlov_table
 
         names, wl, kd = jerlov_table()
         k = kd[:, names.index(t)]

@@ -1,6 +1,6 @@
 """Path-depth truncation check: render a type's fitted water (result.json) at the fit's
 max_depth and at a larger one with the same keys, and report dE2000 between them per depth.
-Usage: python fits/jerlov_types/check_depth.py [TYPE] [DEPTH2]   (default I 24)
+Usage (from the repo root): python -m fits.jerlov_types.check_depth [TYPE] [DEPTH2]   (default I 24)
 Appends to result.json["depth_checks"].
 """
 
@@ -13,19 +13,16 @@ import time
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
+from . import run  # (sets the compilation cache)
+from . import targets as T
 
-import run  # noqa: E402  (sets sys.path and the compilation cache)
-import targets as T  # noqa: E402
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def main():
     import jax
 
-    from jaxvcm import RenderConfig
-    from jaxvcm._fit import Region
-    from jaxvcm._fit_spectral import spectral_region_colours_fn
+    from jaxvcm import Region, RenderConfig, spectral_region_colours_fn
 
     t = sys.argv[1] if len(sys.argv) > 1 else "I"
     d2 = int(sys.argv[2]) if len(sys.argv) > 2 else 24

@@ -20,14 +20,14 @@ index n(550) = 1.33468. One region = the whole image (the floor is uniform).
 Fitted (log space, shared by the 3 depths): a_cdom [1/m at 440 nm], b_p [1/m at 550 nm],
 a_flat [1/m]; fixed: S = 0.015 /nm, n_p = 1, HG g = 0.9 (pure water underneath). Residuals
 in CIELAB (D65 white with Y = 1 = the sky), unit uncertainty, Levenberg-Marquardt
-(`jaxvcm._fit_spectral.fit_spectral`), common random numbers.
+(`jaxvcm.fit_spectral`), common random numbers.
 
 Usage (from the repo root):
-    python fits/jerlov_types/run.py                       # the default types, then the figure
-    python fits/jerlov_types/run.py --types II            # one type (merged into result.json)
-    python fits/jerlov_types/run.py --types C7,C9 --passes 128
-    python fits/jerlov_types/run.py --types III --free a_cdom,b_p,a_flat,S --tag free_S
-    python fits/jerlov_types/run.py --plot                # figures from result.json only
+    python -m fits.jerlov_types.run                       # the default types, then the figure
+    python -m fits.jerlov_types.run --types II            # one type (merged into result.json)
+    python -m fits.jerlov_types.run --types C7,C9 --passes 128
+    python -m fits.jerlov_types.run --types III --free a_cdom,b_p,a_flat,S --tag free_S
+    python -m fits.jerlov_types.run --plot                # figures from result.json only
 Writes result.json, jerlov_fits.png, convergence.png here.
 """
 
@@ -36,13 +36,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
-sys.path.insert(0, ROOT)
-sys.path.insert(0, HERE)
 
 import jax  # noqa: E402
 
@@ -50,8 +47,8 @@ jax.config.update("jax_compilation_cache_dir", os.path.join(ROOT, ".jax_cache"))
 
 import numpy as np  # noqa: E402
 
-import targets as T  # noqa: E402
-from surrogate import hg_backscatter_fraction, surrogate_fit  # noqa: E402
+from . import targets as T  # noqa: E402
+from .surrogate import hg_backscatter_fraction, surrogate_fit  # noqa: E402
 
 DEPTHS = (1.0, 3.0, 10.0)
 DEFAULT_TYPES = ("I", "II", "III", "C1", "C3", "C5")
@@ -74,7 +71,7 @@ RESULT = os.path.join(HERE, "result.json")
 def model_spectra(water: dict, lam) -> dict:
     """Fitted model (all WaterModel leaves) on lam (NumPy): a, b, b_b, K_d proxy
     (a + b_b) / mu_d."""
-    from jaxvcm._water_optics import WaterModel
+    from jaxvcm import WaterModel
 
     m = WaterModel(**{k: float(v) for k, v in water.items()})
     lam = np.asarray(lam, np.float64)
@@ -102,9 +99,7 @@ def build(depths, width, nw, water):
 def fit_type(name, args):
     import colour
 
-    from jaxvcm import RenderConfig
-    from jaxvcm._fit import Region
-    from jaxvcm._fit_spectral import fit_spectral, spectral_region_colours_fn
+    from jaxvcm import Region, RenderConfig, fit_spectral, spectral_region_colours_fn
 
     t0 = time.perf_counter()
     tkw = {"interp": args.kd_interp}
@@ -180,7 +175,7 @@ def plot(data):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxvcm._water_optics import jerlov_table
+    from jaxvcm import jerlov_table
 
     names, wl, kd = jerlov_table()
     types = [t for t in names if t in data["types"]]
@@ -256,7 +251,7 @@ def plot(data):
 def table(data, which="types") -> str:
     """Markdown table of the fits in result.json (per type: values +- 1 sigma, dE2000 per
     depth initial -> final, independent-key render dE, steps, wall time)."""
-    from jaxvcm._water_optics import jerlov_table
+    from jaxvcm import jerlov_table
 
     src = data["types"] if which == "types" else data.get("variants", {}).get(which, {})
     names = [t for t in jerlov_table()[0] if t in src]

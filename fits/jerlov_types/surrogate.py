@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-import targets as T
+from . import targets as T
 
 LO = {"a_cdom": 1e-6, "b_p": 1e-6, "a_flat": 1e-6, "S": 0.003}
 HI = {"a_cdom": 20.0, "b_p": 20.0, "a_flat": 20.0, "S": 0.04}
@@ -35,7 +35,7 @@ def lab(xyz):
 
 def pure_floor(lam):
     """a_w + b_w / 2 (Pope & Fry, Zhang): the least attenuation the model can have."""
-    from jaxvcm._water_optics import pure_water_absorption, pure_water_scattering
+    from jaxvcm import pure_water_absorption, pure_water_scattering
 
     lam = np.asarray(lam, np.float64)
     return (np.asarray(pure_water_absorption(lam), np.float64)

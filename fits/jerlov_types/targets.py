@@ -39,14 +39,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxvcm._reference import fresnel_unpolarised
+from jaxvcm import fresnel_unpolarised
 
 N_WATER = 1.33468  # Daimon & Masumura n(550 nm) at 20 C: the renderer's default index
 CAM_HEIGHT = 0.3  # m, camera above the floor
 
 
 def _tables():
-    from jaxvcm._water_optics import jerlov_table, pope_fry_table
+    from jaxvcm import jerlov_table, pope_fry_table
 
     return jerlov_table(), pope_fry_table()
 
@@ -157,6 +157,6 @@ def target_xyz(name: str, depth: float, **kw) -> np.ndarray:
 
 def delta_e(xyz1, xyz2) -> float:
     """CIEDE2000 between two XYZ (white: D65 with Y = 1, the sky)."""
-    from jaxvcm._fit import delta_e2000
+    from jaxvcm import delta_e2000
 
     return float(delta_e2000(np.asarray(xyz1)[None], np.asarray(xyz2)[None], "xyz")[0])

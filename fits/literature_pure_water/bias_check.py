@@ -3,18 +3,16 @@ sigma_a = 0.02, 0.1, 0.4 /m in the three channels, no scattering, sky 1) of the 
 4 m scenes at 16x16 pixels, P passes (argument, default 256), PT max_depth 20, against the
 quadrature truncated to the same (20 - 3) // 2 = 8 internal round trips. Prints the
 relative error and its standard error (pixels x passes as independent samples), in %.
-Usage: python fits/literature_pure_water/bias_check.py [P]
+Usage (from the repo root): python -m fits.literature_pure_water.bias_check [P]
 """
 import sys, time
-import os
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import jax
-from jaxvcm import cli
-cli._enable_compilation_cache()
+from jaxvcm import enable_compilation_cache
+enable_compilation_cache()
 import jax.numpy as jnp, numpy as np
-import jaxvcm, reference as R
-from jaxvcm import RenderConfig
-from jaxvcm._render import render_pass
+import jaxvcm
+from jaxvcm import RenderConfig, render_pass
+from . import reference as R
 D = 20
 cfg = RenderConfig(algorithm="pt", max_depth=D, rr_depth=100)
 f = jax.jit(jax.vmap(render_pass, in_axes=(None, 0, None)), static_argnums=2)

@@ -13,26 +13,23 @@ mode is the same per linear-sRGB channel (sigma_c, sky 1 per channel). Least squ
 * the best any 3-channel RGB model can do (no Monte Carlo error);
 * what the spectral fit recovers without Monte Carlo error.
 
-Writes expected.json here. Usage: python fits/literature_pure_water/expected_fit.py
+Writes expected.json here. Usage (from the repo root): python -m fits.literature_pure_water.expected_fit
 """
 
 from __future__ import annotations
 
 import json
 import os
-import sys
+
+import colour
+import numpy as np
+from scipy.optimize import least_squares
+
+from jaxvcm import cmf_table, pope_fry_table, upsample_emission, upsample_reflectance
+
+from . import reference as R
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-sys.path.insert(0, os.path.dirname(os.path.dirname(HERE)))
-
-import colour  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy.optimize import least_squares  # noqa: E402
-
-import reference as R  # noqa: E402
-from jaxvcm._spectral import cmf_table, upsample_emission, upsample_reflectance  # noqa: E402
-from jaxvcm._water_optics import pope_fry_table  # noqa: E402
 
 XY = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
 

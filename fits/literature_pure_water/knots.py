@@ -9,27 +9,23 @@ l_k = ln a(lambda_k); the fit's "log space" is applied to a_k = e^(l_k)) from a 
 a_k = 0.1 /m, to the same colour-science targets, scenes, keys and render settings as
 spectral.toml. The Jacobian uncertainty of each knot says how well the colours pin the
 absorption down at that wavelength. Writes knots/fit.json, knots/fit.png and
-knots/absorption.png. Usage: python fits/literature_pure_water/knots.py
+knots/absorption.png. Usage (from the repo root): python -m fits.literature_pure_water.knots
 """
 
 from __future__ import annotations
 
 import json
 import os
-import sys
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import jaxvcm
+from jaxvcm import (WaterModel, enable_compilation_cache, fit_spectral, load_fit_config,
+                    pope_fry_table, write_spectral_fit_outputs)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(os.path.dirname(HERE)))
-
-import equinox as eqx  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-import jaxvcm  # noqa: E402
-from jaxvcm import cli  # noqa: E402
-from jaxvcm._fit import load_fit_config  # noqa: E402
-from jaxvcm._fit_spectral import fit_spectral, write_outputs_spectral  # noqa: E402
-from jaxvcm._water_optics import WaterModel, pope_fry_table  # noqa: E402
 
 KNOTS = (400.0, 450.0, 500.0, 550.0, 600.0, 650.0, 700.0)
 NAMES = tuple(f"a_{int(k)}" for k in KNOTS)
@@ -61,7 +57,7 @@ class KnotWater(WaterModel):
 
 
 def main():
-    cli._enable_compilation_cache()
+    enable_compilation_cache()
     kw = load_fit_config(os.path.join(HERE, "spectral.toml"))
     kw.pop("mode")
     model = KnotWater(pure_absorption=False, pure_scattering=False)
@@ -74,7 +70,7 @@ def main():
                        seed=kw["seed"], max_steps=40, rtol=kw["rtol"], atol=kw["atol"],
                        truth=truth, progress=True)
     out = os.path.join(HERE, "knots")
-    write_outputs_spectral(res, out)
+    write_spectral_fit_outputs(res, out)
     print(res.summary())
     # the knots vs Pope & Fry, with 1-sigma error bars (log-normal: a e^(+-sd(ln a)))
     import matplotlib

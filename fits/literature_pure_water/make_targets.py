@@ -1,17 +1,15 @@
 """Write the scenes and the two fit configs of fits/literature_pure_water from the
 literature reference (reference.py: Pope & Fry absorption, colour-science colours; no
-rendering). Usage: python fits/literature_pure_water/make_targets.py
+rendering). Usage (from the repo root): python -m fits.literature_pure_water.make_targets
 """
 
 from __future__ import annotations
 
 import os
-import sys
+
+from . import reference as R
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-
-import reference as R  # noqa: E402
 
 SIZE = 8  # pixels (the camera sees only the floor: fov 2 deg)
 RENDER = """[render]

@@ -4,7 +4,7 @@ model at the literature answer (a_w_scale = 1, a_cdom = a_flat = 0) with the fit
 its dE2000 to the targets is the renderer's error at these settings (noise + the 0.03 dE
 truncation of the internal round trips), the floor below which no fit can be trusted.
 Writes noise_check.json here (appends one entry per run).
-Usage: python fits/literature_pure_water/noise_check.py spectral:1:32 spectral:2:32 rgb:2:32
+Usage (from the repo root): python -m fits.literature_pure_water.noise_check spectral:1:32 spectral:2:32 rgb:2:32
        (mode:seed:passes ...)
 """
 
@@ -15,16 +15,14 @@ import os
 import sys
 import time
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvcm import (Region, delta_e2000, enable_compilation_cache, fit, fit_spectral,
+                    load_fit_config, spectral_region_colours_fn)
+
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(os.path.dirname(HERE)))
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-from jaxvcm import cli  # noqa: E402
-from jaxvcm._fit import Region, delta_e2000, fit, load_fit_config  # noqa: E402
-from jaxvcm._fit_spectral import fit_spectral, spectral_region_colours_fn  # noqa: E402
 
 OUT = os.path.join(HERE, "noise_check.json")
 
@@ -48,7 +46,7 @@ def truth_de(kw, seed, passes):
 
 
 def main(argv):
-    cli._enable_compilation_cache()
+    enable_compilation_cache()
     done = json.load(open(OUT)) if os.path.exists(OUT) else []
     for spec in argv:
         mode, seed, passes = spec.split(":")

@@ -2,25 +2,23 @@
 Fry. Left: sigma_a(lambda) on a log scale; right: the ratio to Pope & Fry, where the
 differences are visible: the main fit (spectral/fit.json) with its Jacobian 1-sigma band,
 the repeats with other seeds and passes (noise_check.json), and the noise-free expectation
-(expected.json). Usage: python fits/literature_pure_water/plot_absorption.py
+(expected.json). Usage (from the repo root): python -m fits.literature_pure_water.plot_absorption
 """
 
 from __future__ import annotations
 
 import json
 import os
-import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(os.path.dirname(HERE)))
-
-import matplotlib  # noqa: E402
+import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from jaxvcm._water_optics import pope_fry_table  # noqa: E402
+from jaxvcm import pope_fry_table
+
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 S = 0.015
 

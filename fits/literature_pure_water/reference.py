@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxvcm._reference import fresnel_unpolarised, sky_floor_radiance
+from jaxvcm import fresnel_unpolarised, sky_floor_radiance
 
 N_WATER = 1.33468  # Daimon & Masumura n(550 nm), 20 C (jaxvcm's spectral default)
 CAM_HEIGHT = 0.3  # m above the floor

@@ -1,21 +1,19 @@
 """Seconds per forward evaluation and per Jacobian evaluation of the recovery fit's model
 (the 5 regions of fit.toml, 2 scenes x 16 passes x 24x24, PT max_depth 4), after
-compilation; median of 5. Usage: python fits/recover_rgb/bench.py"""
+compilation; median of 5. Usage (from the repo root): python -m fits.recover_rgb.bench"""
 
 from __future__ import annotations
 
 import os
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(os.path.dirname(HERE)))
+from jaxvcm import Region, load_fit_config, region_colours_fn
 
-from jaxvcm._fit import Region, load_fit_config, region_colours_fn  # noqa: E402
+HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def main():

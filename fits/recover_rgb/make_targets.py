@@ -76,8 +76,7 @@ def _fmt(v):
 
 
 def main(passes: int = 16) -> str:
-    sys.path.insert(0, os.path.dirname(os.path.dirname(HERE)))
-    from jaxvcm._fit import load_fit_config, region_colours_fn
+    from jaxvcm import load_fit_config, region_colours_fn
 
     def write(targets):
         regs = "".join(f"\n[[regions]]\nname = \"{n}\"\nscene = \"{s}\"\nrect = {r}\n"

@@ -7,14 +7,13 @@ with `spectral_scene` (4 hero wavelengths per pass). Truth a_cdom = 0.05, b_p = 
 (n_p = 1, HG g = 0.9, pure-water absorption and scattering underneath); start a_cdom =
 0.1, b_p = 0.05. Targets are rendered with the same keys as the fit (common random
 numbers, wavelengths included), as in fits/recover_rgb. Writes fit.json here.
-Usage: python fits/recover_spectral/run.py
+Usage (from the repo root): python -m fits.recover_spectral.run
 """
 
 from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 
 import equinox as eqx
@@ -22,14 +21,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jaxvcm
+from jaxvcm import (Region, RenderConfig, WaterModel, fit_spectral,
+                    spectral_region_colours_fn)
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
-sys.path.insert(0, ROOT)
-
-import jaxvcm  # noqa: E402
-from jaxvcm import RenderConfig, WaterModel  # noqa: E402
-from jaxvcm._fit import Region  # noqa: E402
-from jaxvcm._fit_spectral import fit_spectral, spectral_region_colours_fn  # noqa: E402
 
 TRUTH = {"a_cdom": 0.05, "b_p": 0.1}
 INIT = {"a_cdom": 0.1, "b_p": 0.05}

@@ -21,8 +21,13 @@ reuses one compiled program, and fits them with a small host-side Levenberg-Marq
 weights recomputed between LM solves) or the decorrelated estimating equation
 (`decorrelated_fit`: Jacobian from keys independent of the residual's). `ls_scale`,
 `irls_scale` and `predict_exp` predict where a loss's minimum lies from the noise of a
-render at the truth. `jaxvcm.fit` (optimistix) remains the fitting API; this is for
-studying losses (fits/caustic_robustness).
+render at the truth. `jaxvcm.fit` (optimistix) remains the fitting API; this is study code for
+fits/caustic_robustness (run.py), on jaxvcm's public API only.
+
+`lm_fit` is not `jaxvcm`'s optimistix driver: it takes the Jacobian from the same model
+call as the image (one render per step), clips steps to 2 in ln sigma, and stops on the
+step size and the relative loss decrease; switching would change the study's recorded
+results (result.json, NOTES.md).
 
 Robust weights are not a cure for this drift: when per-pixel noise is Poisson-like there
 are no outliers to reject, and when there are, rejecting them leaves the bulk of a skewed
@@ -34,14 +39,16 @@ from __future__ import annotations
 import time as _time
 from typing import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import RenderConfig
-from ._fit import _with_water
-from ._render import pass_key, render_pass
-from ._scene import Scene
+from jaxvcm import RenderConfig, Scene, pass_key, render_pass
+
+
+def _with_water(scene: Scene, sigma_a, sigma_s) -> Scene:
+    return eqx.tree_at(lambda s: (s.water.sigma_a, s.water.sigma_s), scene, (sigma_a, sigma_s))
 
 
 # ------------------------------------------------------------------ forward model

@@ -1,0 +1,1 @@
+"""fits/caustic_robustness (see NOTES.md or the scripts' docstrings)."""

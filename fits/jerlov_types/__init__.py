@@ -1,0 +1,1 @@
+"""fits/jerlov_types (see NOTES.md or the scripts' docstrings)."""

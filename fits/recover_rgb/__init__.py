@@ -1,0 +1,1 @@
+"""fits/recover_rgb (see NOTES.md or the scripts' docstrings)."""

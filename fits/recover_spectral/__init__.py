@@ -1,0 +1,1 @@
+"""fits/recover_spectral (see NOTES.md or the scripts' docstrings)."""

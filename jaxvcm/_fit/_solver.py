@@ -1,0 +1,101 @@
+"""The one Levenberg-Marquardt driver of the fits (RGB and spectral), on optimistix.
+
+`optimistix.least_squares` with `optimistix.LevenbergMarquardt(rtol, atol)`: Cauchy
+termination on the parameters and on the loss 0.5 sum r^2. The Jacobian is forward mode
+through the renderer (optimistix linearises with `jax.linearize`: one JVP per parameter).
+The loss of every step is recorded with the solver's `verbose` hook (a
+`jax.debug.callback`), giving the convergence history without re-running anything. The
+residuals and the Jacobian at the solution (the last accepted iterate) are read from the
+solver's state, so the compiled program holds no further copies of the renderer.
+
+Covariance of the parameters from the Jacobian J at the solution: `cov_unscaled` =
+(J^T J)^-1 trusts the stated uncertainties; `cov` = (J^T J)^-1 s^2 with the residual
+variance s^2 = sum r^2 / (m - n).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time as _time
+from typing import Callable
+
+import jax
+import numpy as np
+
+
+@dataclasses.dataclass
+class Solution:
+    y: np.ndarray  # [n] the solution (float64)
+    result: str  # optimistix RESULTS name ("successful", "max_steps_reached", ...)
+    steps: int  # optimistix steps
+    overflow: bool  # the residual function's aux (merge overflow flag) at the solution
+    r0: np.ndarray  # [m] residuals at y0
+    residuals: np.ndarray  # [m] residuals at y
+    jacobian: np.ndarray  # [m, n] d residuals / d y at y
+    cov_unscaled: np.ndarray  # [n, n] (J^T J)^-1
+    cov: np.ndarray  # [n, n] (J^T J)^-1 s^2
+    history: list  # per step: {"step", "loss", "loss_accepted", ["step_size",] "theta"}
+    seconds: float  # the least_squares call, compilation included
+
+
+def result_name(result) -> str:
+    import optimistix as optx
+
+    for name in ("successful", "max_steps_reached", "nonlinear_max_steps_reached",
+                 "nonlinear_divergence", "singular"):
+        v = getattr(optx.RESULTS, name, None)
+        if v is not None and bool(result == v):
+            return name
+    return "failed"
+
+
+def levenberg_marquardt(residual_fn: Callable, y0, *, rtol: float, atol: float,
+                        max_steps: int, progress: bool = False,
+                        step_size: bool = True) -> Solution:
+    """Minimise 0.5 |r(y)|^2 from y0; residual_fn(y, args) -> (r [m], aux) with aux a
+    boolean flag (merge overflow). step_size: record the LM step size in the history."""
+    import optimistix as optx
+
+    fields = ("num_steps", "loss_this_step", "loss_last_accepted_step") + \
+        (("step_size",) if step_size else ()) + ("y",)
+    history: list[dict] = []
+
+    def _record(kw):
+        e = {"step": int(kw["num_steps"]), "loss": float(kw["loss_this_step"]),
+             "loss_accepted": float(kw["loss_last_accepted_step"])}
+        if step_size:
+            e["step_size"] = float(kw["step_size"])
+        e["theta"] = np.asarray(kw["y"], np.float64).tolist()
+        history.append(e)
+        if progress:
+            print(f"  step {e['step']:3d}  loss {e['loss']:.6g}", flush=True)
+
+    def verbose(**kw):
+        jax.debug.callback(_record, {k: v[1] for k, v in kw.items() if k in fields})
+
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, verbose=verbose)
+
+    @jax.jit
+    def solve(y0):
+        sol = optx.least_squares(residual_fn, solver, y0, has_aux=True, max_steps=max_steps,
+                                 throw=False)
+        r0, _ = residual_fn(y0, None)
+        # residuals and Jacobian at the last accepted iterate (= sol.value), from the
+        # solver's state: no further copies of the renderer in this program
+        r1 = sol.state.f_info.residual
+        J = sol.state.f_info.jac.as_matrix()
+        return sol.value, sol.result, sol.stats["num_steps"], sol.aux, r0, J, r1
+
+    t1 = _time.perf_counter()
+    y, result, nsteps, overflow, r0, J, r1 = solve(y0)
+    y = np.asarray(jax.block_until_ready(y), np.float64)
+    seconds = _time.perf_counter() - t1
+    res = np.asarray(r1, np.float64)
+    J = np.asarray(J, np.float64)
+    m, n = J.shape
+    cov_u = np.linalg.pinv(J.T @ J)
+    s2 = float(res @ res) / max(m - n, 1)
+    return Solution(y=y, result=result_name(result), steps=int(nsteps),
+                    overflow=bool(overflow), r0=np.asarray(r0, np.float64), residuals=res,
+                    jacobian=J, cov_unscaled=cov_u, cov=cov_u * s2, history=history,
+                    seconds=seconds)
