@@ -751,8 +751,7 @@ def load_fit_config(path) -> dict:
     if not all(math.isfinite(x) for r in regions for x in r.target):  # pragma: no cover
         ctx.fail("regions", "targets must be finite")
     if spectral:
-        from ._spectral import spectral_scene
-        from ._water_optics import WaterModel
+        from ._spectral import WaterModel, spectral_scene
 
         model = WaterModel(**sp["water"])
         try:

@@ -331,7 +331,7 @@ def absorption_band(res: SpectralFitResult, lam, draws: int = 400, seed: int = 0
     """sigma_a(lam) of the fitted model, and its 16th/84th percentiles over `draws` samples of
     theta ~ N(theta_hat, Cov) (the Jacobian covariance): (mean curve, lo, hi) [len(lam)].
     Parameters not fitted stay at the model's values."""
-    from ._water_optics import WaterModel
+    from ._spectral import WaterModel
 
     WaterModel = res.model_type or WaterModel  # noqa: N806
     lam = np.asarray(lam, np.float64)
@@ -365,7 +365,7 @@ def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ._water_optics import WaterModel, pope_fry_table
+    from ._spectral import WaterModel, pope_fry_table
 
     WaterModel = res.model_type or WaterModel  # noqa: N806
     R = len(res.regions)
