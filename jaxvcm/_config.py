@@ -4,7 +4,60 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
+
 ALGORITHMS = ("pt", "lt", "bdpt", "ppm", "bpm", "vcm")  # flags of the one core
+
+
+@dataclasses.dataclass(frozen=True)
+class Techniques:
+    """The techniques an algorithm enables on the one core (the only algorithm -> technique
+    table: the integrator runs these stages, both MIS forms enable these techniques).
+
+    emitter_hits:  s = 0, the camera subpath hits an emitter or escapes to the sky;
+    nee:           s = 1 with t >= 2, next-event estimation;
+    light_tracing: t = 1, light vertex -> pinhole;
+    connections:   s, t >= 2;
+    merging:       None, "first" (ppm: photons gathered at the first non-delta camera
+                   vertex only, and emitter hits only through a purely delta camera
+                   prefix) or "all" (bpm, vcm: merging at every non-delta camera vertex).
+    """
+
+    emitter_hits: bool
+    nee: bool
+    light_tracing: bool
+    connections: bool
+    merging: str | None = None
+
+    @property
+    def camera_paths(self) -> bool:
+        return self.emitter_hits or self.nee or self.connections or self.merging is not None
+
+    @property
+    def light_paths(self) -> bool:
+        return self.light_tracing or self.connections or self.merging is not None
+
+    def connection_mask(self, j, k):
+        """Connection technique j (j light vertices) of a path with k segments enabled
+        (before delta vertices and zero pdfs are considered). j == k is light tracing
+        (also for k = 1), j == 1 < k next-event estimation."""
+        on = jnp.where(j == 0, self.emitter_hits,
+                       jnp.where(j == k, self.light_tracing,
+                                 jnp.where(j == 1, self.nee, self.connections)))
+        return on & (j <= k)
+
+
+TECHNIQUES = {
+    "pt": Techniques(emitter_hits=True, nee=True, light_tracing=False, connections=False),
+    "lt": Techniques(emitter_hits=False, nee=False, light_tracing=True, connections=False),
+    "bdpt": Techniques(emitter_hits=True, nee=True, light_tracing=True, connections=True),
+    "ppm": Techniques(emitter_hits=True, nee=False, light_tracing=False, connections=False,
+                      merging="first"),
+    "bpm": Techniques(emitter_hits=True, nee=False, light_tracing=False, connections=False,
+                      merging="all"),
+    "vcm": Techniques(emitter_hits=True, nee=True, light_tracing=True, connections=True,
+                      merging="all"),
+}
 MIS_HEURISTICS = ("balance", "power")
 MIS_FORMS = ("explicit", "recursive")
 
@@ -13,7 +66,7 @@ MIS_FORMS = ("explicit", "recursive")
 class RenderConfig:
     """Everything that changes the compiled program.
 
-    algorithm:   which techniques of the one core are enabled ("pt" for now).
+    algorithm:   which techniques of the one core are enabled (`TECHNIQUES`).
     max_depth:   maximum number of path segments from the camera to the light
                  (1 = emitters seen directly; a furnace of albedo a converges to
                  Le (1 - a^max_depth) / (1 - a)).
@@ -41,6 +94,10 @@ class RenderConfig:
     alpha: float = 0.75
     merge_capacity: int = 512
     mis_form: str = "explicit"
+
+    @property
+    def techniques(self) -> Techniques:
+        return TECHNIQUES[self.algorithm]
 
     def __post_init__(self):
         if self.algorithm not in ALGORITHMS:

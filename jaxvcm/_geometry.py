@@ -9,11 +9,10 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _vec as V
+from . import _vec as vec
 from ._scene import SHAPE_NONE, SHAPE_RECT, SHAPE_SPHERE, SHAPE_WATER, Rects, Scene, Spheres, Water
 from ._vec import Vec3
 
@@ -32,44 +31,44 @@ class Hit(NamedTuple):
 # ---------------------------------------------------------------- rectangles
 def intersect_rects(r: Rects, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, Array]:
     """Distances to all R rectangles: ([R] t with inf for misses, and the argmin)."""
-    p0 = V.from_array(r.p0)
-    e1 = V.from_array(r.e1)
-    e2 = V.from_array(r.e2)
-    n = V.cross(e1, e2)
-    denom = V.dot(d, n)
+    p0 = vec.from_array(r.p0)
+    e1 = vec.from_array(r.e1)
+    e2 = vec.from_array(r.e2)
+    n = vec.cross(e1, e2)
+    denom = vec.dot(d, n)
     safe = jnp.where(denom == 0, 1.0, denom)
-    num = V.dot(p0 - o, n)
+    num = vec.dot(p0 - o, n)
     t = num / safe
     q = o + d * t - p0
     # (u, v) in the dual basis of (e1, e2): right for parallelograms, not only rectangles
-    nn = V.dot(n, n)
-    u = V.dot(V.cross(q, e2), n) / nn
-    v = V.dot(V.cross(e1, q), n) / nn
+    nn = vec.dot(n, n)
+    u = vec.dot(vec.cross(q, e2), n) / nn
+    v = vec.dot(vec.cross(e1, q), n) / nn
     # o on the plane to within the rounding of num: the only "hit" would be o itself
     eps = jnp.finfo(o.x.dtype).eps
-    on_plane = jnp.abs(num) <= 8 * eps * V.length(n) * (V.length(p0) + V.length(o)
-                                                         + V.length(e1) + V.length(e2))
+    on_plane = jnp.abs(num) <= 8 * eps * vec.length(n) * (vec.length(p0) + vec.length(o)
+                                                         + vec.length(e1) + vec.length(e2))
     ok = ~on_plane & (denom != 0) & (t > tmin) & (t < tmax) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
     t = jnp.where(ok, t, INF)
     return t, jnp.argmin(t)
 
 
 def rect_normal(r: Rects, i) -> Vec3:
-    n = V.cross(V.from_array(r.e1[i]), V.from_array(r.e2[i]))
-    return V.normalize(n)
+    n = vec.cross(vec.from_array(r.e1[i]), vec.from_array(r.e2[i]))
+    return vec.normalize(n)
 
 
 # ---------------------------------------------------------------- spheres
 def intersect_spheres(s: Spheres, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, Array]:
-    c = V.from_array(s.center)
+    c = vec.from_array(s.center)
     oc = o - c
-    b = V.dot(oc, d)
+    b = vec.dot(oc, d)
     # c' = |oc|^2 - R^2 computed as (|oc| - R)(|oc| + R) to keep precision near the surface
-    loc = V.length(oc)
+    loc = vec.length(oc)
     cc = (loc - s.radius) * (loc + s.radius)
     # discriminant via the distance from the centre to the ray (Hearn-Baker form, pbrt-v4)
     perp = oc - d * b
-    disc = (s.radius - V.length(perp)) * (s.radius + V.length(perp))
+    disc = (s.radius - vec.length(perp)) * (s.radius + vec.length(perp))
     sq = jnp.sqrt(jnp.maximum(disc, 0.0))
     q = -(b + jnp.where(b >= 0, sq, -sq))
     q_safe = jnp.where(q == 0, 1.0, q)
@@ -81,7 +80,7 @@ def intersect_spheres(s: Spheres, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, 
     # o on the sphere to within rounding: its own root cc / q ~ 0 is a self-hit; the other
     # root q (= -2 b) is the far side when entering, negative (a miss) when leaving
     eps = jnp.finfo(o.x.dtype).eps
-    on = jnp.abs(loc - s.radius) <= 8 * eps * (V.length(o) + V.length(c) + s.radius)
+    on = jnp.abs(loc - s.radius) <= 8 * eps * (vec.length(o) + vec.length(c) + s.radius)
     t = jnp.where(on, q, t)
     ok = (disc >= 0) & (t > tmin) & (t < tmax) & (q != 0)
     t = jnp.where(ok, t, INF)
@@ -109,7 +108,7 @@ def water_height(w: Water, x, z, grad: bool = True):
 
 def water_normal(w: Water, x, z) -> Vec3:
     _, hx, hz = water_height(w, jnp.asarray(x), jnp.asarray(z))
-    return V.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
+    return vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
 
 
 def water_slab(w: Water) -> tuple[Array, Array]:
@@ -247,19 +246,19 @@ def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: i
     if scene.rects.count:
         is_r = shape == SHAPE_RECT
         ir = jnp.where(is_r, index, 0)
-        n = V.where(is_r, rect_normal(scene.rects, ir), n)
+        n = vec.where(is_r, rect_normal(scene.rects, ir), n)
         mat = jnp.where(is_r, scene.rects.mat[ir], mat)
         light = jnp.where(is_r, scene.rects.light[ir], light)
     if scene.spheres.count:
         is_s = shape == SHAPE_SPHERE
         isp = jnp.where(is_s, index, 0)
-        c = V.from_array(scene.spheres.center[isp])
-        n = V.where(is_s, V.normalize(p - c), n)
+        c = vec.from_array(scene.spheres.center[isp])
+        n = vec.where(is_s, vec.normalize(p - c), n)
         mat = jnp.where(is_s, scene.spheres.mat[isp], mat)
         light = jnp.where(is_s, scene.spheres.light[isp], light)
     if scene.water.enabled:
         is_w = shape == SHAPE_WATER
-        n = V.where(is_w, water_normal(scene.water, p.x, p.z), n)
+        n = vec.where(is_w, water_normal(scene.water, p.x, p.z), n)
         mat = jnp.where(is_w, scene.water.mat, mat)
         light = jnp.where(is_w, -1, light)
     return Hit(t, shape, index, n, mat, light)

@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _sampling as S
-from . import _vec as V
+from . import _sampling as sampling
+from . import _vec as vec
 from ._scene import LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, Scene
 from ._vec import Vec3
 
@@ -45,11 +45,11 @@ def rect_area(scene: Scene, i):
 
 def rect_frame(scene: Scene, i):
     """(p0, e1, e2, unit normal, area) of rectangle i (the emitting side for lights)."""
-    p0 = V.from_array(scene.rects.p0[i])
-    e1 = V.from_array(scene.rects.e1[i])
-    e2 = V.from_array(scene.rects.e2[i])
-    nl = V.cross(e1, e2)
-    area = V.length(nl)
+    p0 = vec.from_array(scene.rects.p0[i])
+    e1 = vec.from_array(scene.rects.e1[i])
+    e2 = vec.from_array(scene.rects.e2[i])
+    nl = vec.cross(e1, e2)
+    area = vec.length(nl)
     return p0, e1, e2, nl / area, area
 
 
@@ -57,7 +57,7 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
     """Pick one light by power and sample a direction towards it from p."""
     lights = scene.lights
     sel = selection_pdf(scene)
-    li, _ = S.sample_discrete(sel, u_sel)
+    li, _ = sampling.sample_discrete(sel, u_sel)
     psel = sel[li]
     dt = p.x.dtype
     C = lights.radiance.shape[-1]
@@ -71,35 +71,35 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
             p0, e1, e2, nl, area = rect_frame(scene, lights.shape[k])
             q = p0 + e1 * u1 + e2 * u2
             dv = q - p
-            d2 = V.dot(dv, dv)
+            d2 = vec.dot(dv, dv)
             dist = jnp.sqrt(d2)
             wi = dv / jnp.maximum(dist, 1e-30)
-            cos_l = -V.dot(wi, nl)
+            cos_l = -vec.dot(wi, nl)
             valid = (cos_l > 0) & (d2 > 0)
             pdf = d2 / jnp.maximum(cos_l * area, 1e-30)
             s = LightSample(wi, dist, Le, pdf, jnp.zeros((), bool), valid, li, nl)
         elif kind == LIGHT_SPHERE:
             r = lights.shape[k]
-            c = V.from_array(scene.spheres.center[r])
+            c = vec.from_array(scene.spheres.center[r])
             rad = scene.spheres.radius[r]
-            dirn = S.uniform_sphere(u1, u2)
+            dirn = sampling.uniform_sphere(u1, u2)
             q = c + dirn * rad
             dv = q - p
-            d2 = V.dot(dv, dv)
+            d2 = vec.dot(dv, dv)
             dist = jnp.sqrt(d2)
             wi = dv / jnp.maximum(dist, 1e-30)
-            cos_l = jnp.abs(V.dot(wi, dirn))  # two-sided emitter
+            cos_l = jnp.abs(vec.dot(wi, dirn))  # two-sided emitter
             valid = (cos_l > 0) & (d2 > 0)
             pdf = d2 / jnp.maximum(cos_l * 4.0 * jnp.pi * rad * rad, 1e-30)
             s = LightSample(wi, dist, Le, pdf, jnp.zeros((), bool), valid, li, dirn)
         elif kind == LIGHT_SUN:
-            dl = V.from_array(lights.direction[k])
+            dl = vec.from_array(lights.direction[k])
             s = LightSample(-dl, jnp.asarray(jnp.inf, dt), Le, jnp.ones((), dt),
                             jnp.ones((), bool), jnp.ones((), bool), li, dl)
         elif kind == LIGHT_SKY:
-            loc = S.cosine_hemisphere(u1, u2)
+            loc = sampling.cosine_hemisphere(u1, u2)
             wi = Vec3(loc.x, loc.z, loc.y)  # z-up local -> y-up world
-            pdf = S.cosine_hemisphere_pdf(wi.y)
+            pdf = sampling.cosine_hemisphere_pdf(wi.y)
             s = LightSample(wi, jnp.asarray(jnp.inf, dt), Le, pdf, jnp.zeros((), bool), wi.y > 0,
                             li, -wi)
         else:  # pragma: no cover
@@ -123,7 +123,7 @@ def emitted_surface(scene: Scene, light_id, wo: Vec3, n: Vec3, dist) -> tuple[Ar
     sel = selection_pdf(scene)
     Le = jnp.zeros((C,), dt)
     pdf = jnp.zeros((), dt)
-    cos = V.dot(wo, n)
+    cos = vec.dot(wo, n)
     for k, kind in enumerate(lights.kind):
         if kind == LIGHT_RECT:
             area = rect_area(scene, lights.shape[k])
@@ -154,7 +154,7 @@ def emitted_escape(scene: Scene, d: Vec3) -> tuple[Array, Array]:
         if kind == LIGHT_SKY:
             up = d.y > 0
             Le = Le + jnp.where(up, lights.radiance[k], 0.0)
-            pdf = pdf + jnp.where(up, S.cosine_hemisphere_pdf(d.y) * sel[k], 0.0)
+            pdf = pdf + jnp.where(up, sampling.cosine_hemisphere_pdf(d.y) * sel[k], 0.0)
     return Le, jax.lax.stop_gradient(pdf)
 
 
@@ -191,12 +191,12 @@ def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
     _, rb = bounding_sphere(scene)
     dt = n.x.dtype
     pdf = jnp.zeros((), dt)
-    cos = V.dot(n, w)
+    cos = vec.dot(n, w)
     for k, kind in enumerate(lights.kind):
         if kind == LIGHT_RECT:
-            pk = jnp.maximum(cos, 0.0) * S.INV_PI
+            pk = jnp.maximum(cos, 0.0) * sampling.INV_PI
         elif kind == LIGHT_SPHERE:
-            pk = jnp.abs(cos) * (0.5 * S.INV_PI)
+            pk = jnp.abs(cos) * (0.5 * sampling.INV_PI)
         else:
             pk = jnp.ones((), dt) / (jnp.pi * rb * rb)
         pdf = jnp.where(light == k, pk, pdf)
@@ -217,7 +217,7 @@ def light_point_pdf(scene: Scene, light, w_inf: Vec3):
             r = scene.spheres.radius[lights.shape[k]]
             pk = 1.0 / (4.0 * jnp.pi * r * r)
         elif kind == LIGHT_SKY:
-            pk = S.cosine_hemisphere_pdf(w_inf.y)
+            pk = sampling.cosine_hemisphere_pdf(w_inf.y)
         else:
             pk = jnp.ones((), dt)
         pdf = jnp.where(light == k, pk * sel[k], pdf)
@@ -230,60 +230,60 @@ def sample_emission(scene: Scene, u) -> Emission:
 
     lights = scene.lights
     sel = selection_pdf(scene)
-    li, _ = S.sample_discrete(sel, u[0])
+    li, _ = sampling.sample_discrete(sel, u[0])
     psel = sel[li]
     dt = u.dtype
     C = lights.radiance.shape[-1]
     cb, rb = bounding_sphere(scene)
-    cb = V.from_array(cb)
+    cb = vec.from_array(cb)
     z = jnp.zeros((), dt)
     zero3 = Vec3(z, z, z)
     out = Emission(zero3, zero3, zero3, Vec3(z, -jnp.ones((), dt), z), jnp.zeros((C,), dt),
                    jnp.zeros((C,), dt), jnp.ones((), dt), jnp.ones((), dt),
                    jnp.asarray(0, jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
-    dx, dy = S.concentric_disk(u[3], u[4])
+    dx, dy = sampling.concentric_disk(u[3], u[4])
     for k, kind in enumerate(lights.kind):
         Le = lights.radiance[k]
         if kind in (LIGHT_RECT, LIGHT_SPHERE):
             if kind == LIGHT_RECT:
                 p0, e1, e2, n, area = rect_frame(scene, lights.shape[k])
                 p = p0 + e1 * u[1] + e2 * u[2]
-                loc = S.cosine_hemisphere(u[3], u[4])
-                d = V.to_world(loc, n)
-                pdf_dir = S.cosine_hemisphere_pdf(loc.z)
+                loc = sampling.cosine_hemisphere(u[3], u[4])
+                d = vec.to_world(loc, n)
+                pdf_dir = sampling.cosine_hemisphere_pdf(loc.z)
             else:
                 r = lights.shape[k]
-                c = V.from_array(scene.spheres.center[r])
+                c = vec.from_array(scene.spheres.center[r])
                 rad = scene.spheres.radius[r]
                 area = 4.0 * jnp.pi * rad * rad
                 # u[1] picks the side (both sides emit), reused for the point
                 out_side = u[1] < 0.5
                 u1 = jnp.where(out_side, 2.0 * u[1], 2.0 * u[1] - 1.0)
-                n = S.uniform_sphere(u1, u[2])
+                n = sampling.uniform_sphere(u1, u[2])
                 p = c + n * rad
-                loc = S.cosine_hemisphere(u[3], u[4])
-                nn = V.where(out_side, n, -n)
-                d = V.to_world(loc, nn)
-                pdf_dir = 0.5 * S.cosine_hemisphere_pdf(loc.z)
-            cos = jnp.abs(V.dot(d, n))
+                loc = sampling.cosine_hemisphere(u[3], u[4])
+                nn = vec.where(out_side, n, -n)
+                d = vec.to_world(loc, nn)
+                pdf_dir = 0.5 * sampling.cosine_hemisphere_pdf(loc.z)
+            cos = jnp.abs(vec.dot(d, n))
             pdf_pos = psel / area
             scale = 1e-4 * (1.0 + jnp.maximum(jnp.maximum(jnp.abs(p.x), jnp.abs(p.y)), jnp.abs(p.z)))
-            o = p + n * jnp.where(V.dot(d, n) >= 0, scale, -scale)
+            o = p + n * jnp.where(vec.dot(d, n) >= 0, scale, -scale)
             e = Emission(p, n, o, d, jnp.ones((C,), dt) / pdf_pos, Le * cos / (pdf_pos * pdf_dir), pdf_pos,
                          pdf_dir, jnp.asarray(k, jnp.int32), jnp.zeros((), bool),
                          jnp.zeros((), bool))
         else:
             if kind == LIGHT_SUN:
-                d = V.from_array(lights.direction[k])
+                d = vec.from_array(lights.direction[k])
                 pdf_pos = psel
                 delta = jnp.ones((), bool)
             else:
-                loc = S.cosine_hemisphere(u[1], u[2])
+                loc = sampling.cosine_hemisphere(u[1], u[2])
                 w_sky = Vec3(loc.x, loc.z, loc.y)
                 d = -w_sky
-                pdf_pos = psel * S.cosine_hemisphere_pdf(w_sky.y)
+                pdf_pos = psel * sampling.cosine_hemisphere_pdf(w_sky.y)
                 delta = jnp.zeros((), bool)
-            t1, t2 = V.onb(d)
+            t1, t2 = vec.onb(d)
             o = cb - d * (rb * 1.01) + (t1 * dx + t2 * dy) * rb
             pdf_disk = 1.0 / (jnp.pi * rb * rb)
             e = Emission(o, -d, o, d, jnp.zeros((C,), dt), Le / (pdf_pos * pdf_disk), pdf_pos,

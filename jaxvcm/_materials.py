@@ -24,8 +24,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _sampling as S
-from . import _vec as V
+from . import _sampling as sampling
+from . import _vec as vec
 from ._scene import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR
 from ._vec import Vec3
 
@@ -55,17 +55,17 @@ class BSDFSample(NamedTuple):
 def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: bool = True
                 ) -> BSDFSample:
     """Sample wi for material `kind` (a traced int selecting among the static kinds)."""
-    cos_o = V.dot(wo, n)
+    cos_o = vec.dot(wo, n)
     side = jnp.where(cos_o >= 0, 1.0, -1.0).astype(n.x.dtype)
     ns = n * side  # normal on wo's side
 
     # ---- Lambertian ----
-    loc = S.cosine_hemisphere(u1, u2)
-    wi_d = V.to_world(loc, ns)
-    pdf_d = S.cosine_hemisphere_pdf(loc.z)
+    loc = sampling.cosine_hemisphere(u1, u2)
+    wi_d = vec.to_world(loc, ns)
+    pdf_d = sampling.cosine_hemisphere_pdf(loc.z)
 
     # ---- mirror ----
-    wi_m = V.reflect(wo, ns)
+    wi_m = vec.reflect(wo, ns)
 
     # ---- dielectric: eta = n_t / n_i seen from wo's side ----
     C = albedo.shape[-1]
@@ -77,8 +77,8 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: 
     refl = u_lobe < R
     cos_i = jnp.abs(cos_o)
     wi_t = -wo / eta + ns * (cos_i / eta - cos_t)
-    wi_t = V.normalize(wi_t)
-    wi_g = V.where(refl, wi_m, wi_t)
+    wi_t = vec.normalize(wi_t)
+    wi_g = vec.where(refl, wi_m, wi_t)
     scale_t = 1.0 / (eta * eta) if radiance else 1.0
     if dispersive:
         R_c, _ = fresnel_dielectric(cos_o, jnp.where(cos_o >= 0, ior, 1.0 / ior))
@@ -89,7 +89,7 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: 
 
     is_d = kind == MAT_DIFFUSE
     is_m = kind == MAT_MIRROR
-    wi = V.where(is_d, wi_d, V.where(is_m, wi_m, wi_g))
+    wi = vec.where(is_d, wi_d, vec.where(is_m, wi_m, wi_g))
     weight = jnp.where(is_d | is_m, albedo, w_g)
     pdf = jnp.where(is_d, pdf_d, jnp.where(is_m, 1.0, jnp.where(refl, R, 1.0 - R)))
     delta = ~is_d
@@ -103,14 +103,10 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: 
 def eval_bsdf(kind, albedo, wo: Vec3, wi: Vec3, n: Vec3) -> tuple[Array, Array]:
     """f(wo, wi) |cos(wi, n)| and the solid-angle pdf of sampling wi; zero for delta lobes.
     Lambertian surfaces are two-sided: wo and wi must lie on the same side."""
-    cos_o = V.dot(wo, n)
-    cos_i = V.dot(wi, n)
+    cos_o = vec.dot(wo, n)
+    cos_i = vec.dot(wi, n)
     same = cos_o * cos_i > 0
     is_d = (kind == MAT_DIFFUSE) & same
-    f = jnp.where(is_d, albedo * (S.INV_PI * jnp.abs(cos_i)), 0.0)
-    pdf = jnp.where(is_d, S.INV_PI * jnp.abs(cos_i), 0.0)
+    f = jnp.where(is_d, albedo * (sampling.INV_PI * jnp.abs(cos_i)), 0.0)
+    pdf = jnp.where(is_d, sampling.INV_PI * jnp.abs(cos_i), 0.0)
     return f, pdf
-
-
-def is_delta(kind):
-    return (kind == MAT_DIELECTRIC) | (kind == MAT_MIRROR)

@@ -21,8 +21,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _sampling as S
-from . import _vec as V
+from . import _sampling as sampling
+from . import _vec as vec
 from ._scene import PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER, Water
 from ._vec import Vec3
 
@@ -72,23 +72,23 @@ def sample_free_flight(w: Water, t_surf, u_ch, u_t) -> FreeFlight:
 # ---- phase functions: mu = cos(angle between propagation direction d and wi) ----
 def phase_eval(kind: int, w: Water, mu):
     if kind == PHASE_ISOTROPIC:
-        return jnp.full_like(mu, S.INV_4PI)
+        return jnp.full_like(mu, sampling.INV_4PI)
     if kind == PHASE_HG:
-        return S.hg_pdf(mu, w.g)
+        return sampling.hg_pdf(mu, w.g)
     if kind == PHASE_WATER:
-        return S.water_phase_pdf(mu, w.b)
+        return sampling.water_phase_pdf(mu, w.b)
     raise ValueError(kind)
 
 
 def phase_sample(kind: int, w: Water, d: Vec3, u1, u2) -> tuple[Vec3, Array]:
     """Sample wi around propagation direction d; returns (wi, pdf). Weight is exactly 1."""
     if kind == PHASE_ISOTROPIC:
-        loc = S.isotropic_sample(u1, u2)
+        loc = sampling.isotropic_sample(u1, u2)
     elif kind == PHASE_HG:
-        loc = S.hg_sample(u1, u2, jax.lax.stop_gradient(w.g))
+        loc = sampling.hg_sample(u1, u2, jax.lax.stop_gradient(w.g))
     elif kind == PHASE_WATER:
-        loc = S.water_phase_sample(u1, u2, jax.lax.stop_gradient(w.b))
+        loc = sampling.water_phase_sample(u1, u2, jax.lax.stop_gradient(w.b))
     else:
         raise ValueError(kind)
-    wi = V.to_world(loc, d)
+    wi = vec.to_world(loc, d)
     return wi, jax.lax.stop_gradient(phase_eval(kind, w, loc.z))

@@ -28,12 +28,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from . import _hashgrid as HG
-from . import _subpath as SP
-from . import _vec as V
+from . import _hashgrid as hashgrid
+from . import _subpath as subpath
+from . import _vec as vec
 from ._config import RenderConfig
-from ._connect import PathEnds, both_dispersed
-from ._scene import Scene
+from ._path import both_dispersed, log_n_light_tracing, pdfs, reverse_pdf, weight
+from ._scene import Scene, bounding_sphere
+from ._subpath import PathEnds
 from ._vec import Vec3
 
 
@@ -51,13 +52,25 @@ def pass_radius(cfg: RenderConfig, scene: Scene, pass_index) -> Radii:
                   grows as r^-3, so the radius shrinks more slowly for the same alpha),
     r_1 = `cfg.radius` times the scene's bounding radius. The pass index alone drives the
     schedule, so resumed and sharded renders agree."""
-    from ._scene import bounding_sphere
-
     _, rb = bounding_sphere(scene)
     i = jnp.asarray(pass_index, rb.dtype) + 1.0
     r1 = cfg.radius * rb
     return Radii(jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 2.0)),
                  jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 3.0)))
+
+
+def log_etas(radius, n_paths, dtype):
+    """log of the merging multiplicity times kernel size, eta_VCM (Georgiev et al. 2012):
+    (surface pi r_s^2 N, medium 4/3 pi r_m^3 N); `radius` is a `_merge.Radii` (surface,
+    medium) or one radius for both; zeros when there is no merging."""
+    if radius is None:
+        z = jnp.zeros((), dtype)
+        return z, z
+    ln = jnp.log(jnp.asarray(n_paths, dtype))
+    rs, rm = (radius.surface, radius.medium) if hasattr(radius, "medium") else (radius, radius)
+    rs = jnp.asarray(rs, dtype)
+    rm = jnp.asarray(rm, dtype)
+    return ln + jnp.log(jnp.pi * rs * rs), ln + jnp.log(4.0 / 3.0 * jnp.pi * rm * rm * rm)
 
 
 def kernel_size(medium, radius: Radii):
@@ -85,7 +98,7 @@ def _one_scattering_event(scene: Scene, medium):
     return jnp.where(medium[:, None], inv[None, :], 1.0)
 
 
-def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Vertex,
+def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpath.Vertex,
                   lig: PathEnds, radius):
     """PPM estimate per camera lane [N, C] and the grid's overflow flag."""
     N = cam.A.shape[1]
@@ -105,7 +118,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
     pvalid = flat(lig.alive) & ~flat(lig.delta)
     M = pp.x.shape[0]
     table = 1 << max(4, int(math.ceil(math.log2(max(M, 16)))))
-    grid = HG.build(pp.x, pp.y, pp.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
+    grid = hashgrid.build(pp.x, pp.y, pp.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
 
     # ---- gather vertex: the first non-delta camera vertex ----
     nd = cam.alive[1:] & ~cam.delta[1:]  # [D, N] for z_1..z_D
@@ -121,14 +134,14 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
 
     def kernel(qi, pj, d2):
         same = zmed[qi] == pmed[pj]
-        facing = zmed[qi] | (V.dot(Vec3(zn.x[qi], zn.y[qi], zn.z[qi]),
+        facing = zmed[qi] | (vec.dot(Vec3(zn.x[qi], zn.y[qi], zn.z[qi]),
                                    Vec3(pn.x[pj], pn.y[pj], pn.z[pj])) > 0)
         wo_p = Vec3(pwo.x[pj], pwo.y[pj], pwo.z[pj])
         wo_z = Vec3(zwo.x[qi], zwo.y[qi], zwo.z[qi])
         nz = Vec3(zn.x[qi], zn.y[qi], zn.z[qi])
-        f = jax.vmap(lambda k_, m_, a, b, n_: SP.eval_f(scene, k_, m_, a, b, n_))(
+        f = jax.vmap(lambda k_, m_, a, b, n_: subpath.eval_f(scene, k_, m_, a, b, n_))(
             zkind[qi], zmat[qi], wo_z, wo_p, nz)
-        cosp = jnp.where(zmed[qi], 1.0, jnp.abs(V.dot(nz, wo_p)))
+        cosp = jnp.where(zmed[qi], 1.0, jnp.abs(vec.dot(nz, wo_p)))
         f = f / jnp.maximum(cosp, 1e-8)[:, None]  # f without the cosine (density does it)
         depth_ok = pdepth[pj] + j[qi] <= D
         ok = same & facing & depth_ok & _within(zmed[qi], d2, radius)
@@ -136,9 +149,9 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: SP.Ver
         f = f * both_dispersed(C, zdisp[qi], pdisp[pj]).astype(f.dtype)
         return jnp.where(ok[:, None], f * pbeta[pj], 0.0)
 
-    total, overflow = HG.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
-                                             _search_radius(radius),
-                                             max_candidates=cfg.merge_capacity)
+    total, overflow = hashgrid.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
+                                            _search_radius(radius),
+                                            max_candidates=cfg.merge_capacity)
     est = zbeta * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(has[:, None], est, 0.0)
     # ---- emission along the delta prefix and at the gather vertex (weight 1) ----
@@ -156,13 +169,11 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
     Returns ([N, C] per camera lane, overflow)."""
-    from . import _connect as CN
-
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
-    etas = CN.log_etas(radius, N, dt)
-    log_n = CN.log_n_light_tracing(cfg, N, dt)
+    etas = log_etas(radius, N, dt)
+    log_n = log_n_light_tracing(cfg, N, dt)
     # ---- photons y_1..y_{D-1}, gather points z_1..z_{D-1}, flattened (index = row * N + lane)
     li = np.arange(1, lig.A.shape[0])
     ci = np.arange(1, D)
@@ -170,15 +181,14 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     pvalid = flat(lig.alive, li) & ~flat(lig.delta, li)
     py = Vec3(*(flat(c, li) for c in lig.p))
     table = 1 << max(4, int(math.ceil(math.log2(max(py.x.shape[0], 16)))))
-    grid = HG.build(py.x, py.y, py.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
+    grid = hashgrid.build(py.x, py.y, py.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
     zq = Vec3(*(flat(c, ci) for c in cam.p))
     zvalid = flat(cam.alive, ci) & ~flat(cam.delta, ci)
     # queries of dead / delta camera vertices are moved far away (no neighbours)
     far = jnp.asarray(1e30, dt)
     zq = Vec3(*(jnp.where(zvalid, c, far) for c in zq))
-    P = _pdfs_of(lig)
-    Cp = _pdfs_of(cam)
-    bp = lambda k_, m_, a, b, n_: SP.bsdf_pdf(scene, k_, m_, None, a, b, n_)  # noqa: E731
+    lig_pdfs = pdfs(lig)
+    cam_pdfs = pdfs(cam)
 
     def at(ends, row, lane):
         return jax.tree.map(lambda a: a[row, lane], ends)
@@ -192,45 +202,34 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
         zp = at(cam, jq - 1, lc)
         y = at(lig, ip, ll)
         yp = at(lig, ip - 1, ll)
-        same = (z.medium == y.medium) & (z.medium | (V.dot(z.n, y.n) > 0))
+        same = (z.medium == y.medium) & (z.medium | (vec.dot(z.n, y.n) > 0))
         ok = (same & (ip + jq <= D) & z.alive & ~z.delta & y.alive & ~y.delta
               & _within(z.medium, d2, radius))
-        fz = jax.vmap(lambda k_, m_, a, b, n_: SP.eval_f(scene, k_, m_, a, b, n_))(
+        fz = jax.vmap(lambda k_, m_, a, b, n_: subpath.eval_f(scene, k_, m_, a, b, n_))(
             z.kind, z.mat, z.wo, y.wo, z.n)
-        cz = jnp.where(z.medium, 1.0, jnp.abs(V.dot(z.n, y.wo)))
+        cz = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, y.wo)))
         fz = fz / jnp.maximum(cz, 1e-8)[:, None] * _one_scattering_event(scene, z.medium)
         fz = fz * both_dispersed(scene.channels, z.disp, y.disp).astype(fz.dtype)
         # ---- the pdfs that change at the merge (x_s = z, photon y_s = y) ----
-        pa1 = jax.vmap(bp)(z.kind, z.mat, y.wo, z.wo, z.n)  # z_{j-1} through z, from y_{i-1}
-        dz = zp.p - z.p
-        lz = V.length(dz)
-        A_s1 = pa1 * SP.to_area(1.0, zp.medium, zp.n, dz / jnp.maximum(lz, 1e-30), lz,
-                                z.seg_water, scene.water)
-        pb1 = jax.vmap(bp)(z.kind, z.mat, z.wo, y.wo, z.n)  # y_{i-1} through z, from z_{j-1}
-        dy = yp.p - z.p
-        ly = V.length(dy)
-        b1 = pb1 * SP.to_area(1.0, yp.medium, yp.n, dy / jnp.maximum(ly, 1e-30), ly,
-                              y.seg_water, scene.water)
+        rev = jax.vmap(lambda *args: reverse_pdf(scene, *args))
+        # z_{j-1} through z, coming from y_{i-1}; y_{i-1} through z, coming from z_{j-1}
+        A_s1, _ = rev(z.kind, z.mat, z.n, z.p, y.wo, z.wo, zp.p, zp.medium, zp.n, z.seg_water)
+        b1, pb1 = rev(z.kind, z.mat, z.n, z.p, z.wo, y.wo, yp.p, yp.medium, yp.n, y.seg_water)
         B_s1 = jnp.where((ip == 1) & e.infinite[ll], pb1, b1)
-        B_s2 = P.B[jnp.maximum(ip - 2, 0), ll]
-        lig_l = jax.tree.map(lambda a: a[:, ll].T, P)
-        cam_l = jax.tree.map(lambda a: a[:, lc].T, Cp)
-        w = jax.vmap(CN.weight, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None, None,
+        B_s2 = lig_pdfs.B[jnp.maximum(ip - 2, 0), ll]
+        lig_l = jax.tree.map(lambda a: a[:, ll].T, lig_pdfs)
+        cam_l = jax.tree.map(lambda a: a[:, lc].T, cam_pdfs)
+        w = jax.vmap(weight, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None, None,
                                          None))(
             cfg, ip, jq + 1, lig_l, cam_l, y.A, A_s1, B_s1, B_s2, e.delta[ll], e.infinite[ll],
             log_n, etas[0], etas[1], True)
         return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
 
-    total, overflow = HG.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
-                                             _search_radius(radius),
-                                             max_candidates=cfg.merge_capacity)
+    total, overflow = hashgrid.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
+                                            _search_radius(radius),
+                                            max_candidates=cfg.merge_capacity)
     zmed = flat(cam.medium, ci)
     est = flat(cam.beta, ci) * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(zvalid[:, None], est, 0.0).reshape(len(ci), N, -1)
     return est, overflow
 
-
-def _pdfs_of(e: PathEnds):
-    from ._connect import _pdfs
-
-    return _pdfs(e)

@@ -36,25 +36,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-TECH_ALL = "bdpt"
-
-
-def technique_mask(algorithm: str, k: Int[Array, ""], L: int) -> Bool[Array, "L1"]:
-    """Techniques j in [0, L] (L = max vertices) enabled by the algorithm for path length k."""
-    j = jnp.arange(L + 1, dtype=jnp.int32)
-    if algorithm == "pt":  # emitter hits (s = 0) and NEE (s = 1 with t >= 2, i.e. k >= 2)
-        return (j == 0) | ((j == 1) & (k >= 2))
-    if algorithm == "lt":
-        return j == k
-    if algorithm in ("bdpt", "vcm"):
-        return j <= k
-    if algorithm in ("ppm", "bpm"):  # emitter hits only (ppm: further restricted below)
-        return j == 0
-    raise ValueError(f"algorithm: no connection techniques for {algorithm!r}")
-
-
-MERGING = ("ppm", "bpm", "vcm")
-
+from ._config import TECHNIQUES
 
 def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L"],
                k: Int[Array, ""], s: Int[Array, ""], delta_light: Bool[Array, ""],
@@ -99,28 +81,29 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
                      jnp.where(j == k + 1, False,
                                ~jnp.where(j == 1, False, left_delta) & ~jnp.where(j == k, False, dpad)))
     conn = conn & ~((j == 1) & (k == 1) & infinite_light)
-    valid = conn & positive & (j <= k + 1) & technique_mask(algorithm, k, L)
+    tech = TECHNIQUES[algorithm]
+    valid = conn & positive & (j <= k + 1) & tech.connection_mask(j, k)
     # non-delta interior vertices strictly between x_i and the camera (for ppm)
     nd = (~delta & in_path & (i >= 1) & (i <= k - 1)).astype(jnp.int32)
     nd_after = jnp.concatenate([jnp.cumsum(nd[::-1])[::-1][1:], jnp.zeros((1,), jnp.int32)])
-    if algorithm == "ppm":
+    if tech.merging == "first":
         # emitter hits only through a purely delta camera prefix
         valid = valid & (jnp.sum(nd) == 0)
     log_n = jnp.where(j == k, log_n_lt, 0.0).astype(dt)
     lvc = c + log_n  # log(n_j p_j / p_b), p_b = prod b_i: j = 0..L
     own = lvc[s]
     own_valid = valid[s]
-    if algorithm in MERGING:
+    if tech.merging is not None:
         lm = c[:-1] + la + log_eta  # log(n_VM p_VM,i / p_b), i = 0..L-1
         vm = (in_path & (i >= 1) & (i <= k - 1) & ~delta & positive[:-1] & pos_a)
-        if algorithm == "ppm":
+        if tech.merging == "first":
             vm = vm & (nd_after == 0)
         own = jnp.where(merge, lm[jnp.minimum(s, L - 1)], own)
         own_valid = jnp.where(merge, vm[jnp.minimum(s, L - 1)], own_valid)
     # w = (n_s p_s)^beta / sum_T (n_T p_T)^beta: differences to the own technique first
     # (small numbers), then logsumexp
     terms = jnp.where(valid, beta * (lvc - own), -jnp.inf)
-    if algorithm in MERGING:
+    if tech.merging is not None:
         terms = jnp.concatenate([terms, jnp.where(vm, beta * (lm - own), -jnp.inf)])
     w = jnp.exp(-jax.nn.logsumexp(terms))
     return jnp.where(own_valid, w, 0.0)

@@ -120,8 +120,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-MERGING = ("ppm", "bpm", "vcm")
-ALGORITHMS = ("pt", "lt", "bdpt", "ppm", "bpm", "vcm")
+from ._config import TECHNIQUES
 
 
 def _recip(x):
@@ -149,22 +148,14 @@ def enable_factors(algorithm: str, delta, k, delta_light, infinite_light):
                   ~((j >= 2) & d_left) & ~((j <= k - 1) & d_right) & (j <= k))
     e = e & ~((j == 1) & (k == 1) & infinite_light)
     interior_nd = ~d & (i >= 1) & (i <= k - 1)  # non-delta vertices that can merge
+    tech = TECHNIQUES[algorithm]
+    e = e & tech.connection_mask(j, k)
     f = interior_nd
-    if algorithm == "pt":
-        e = e & ((j == 0) | ((j == 1) & (k >= 2)))
-    elif algorithm == "lt":
-        e = e & (j == k)
-    elif algorithm in ("bdpt", "vcm"):
-        pass
-    elif algorithm in ("bpm", "ppm"):
-        e = e & (j == 0)
-    else:
-        raise ValueError(f"algorithm: unknown {algorithm!r}; one of {', '.join(ALGORITHMS)}")
-    if algorithm == "ppm":
+    if tech.merging == "first":
         last = jnp.max(jnp.where(interior_nd, i, 0))  # first non-delta vertex from the camera
         f = f & (i == last)
         e = e & (last == 0)  # emitter hits only through a purely delta camera prefix
-    if algorithm not in MERGING:
+    if tech.merging is None:
         f = jnp.zeros_like(f)
     return e, f
 
@@ -183,7 +174,7 @@ def mis_weight_recursive(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool
     s = jnp.asarray(s, jnp.int32)
     i = jnp.arange(L, dtype=jnp.int32)
     in_path = i <= k
-    merging = algorithm in MERGING
+    merging = TECHNIQUES[algorithm].merging is not None
     if merging and log_eta is None:
         raise ValueError("log_eta: required for the merging algorithms")
     beta = jnp.asarray(beta, dt)

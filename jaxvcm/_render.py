@@ -1,8 +1,12 @@
-"""Pure-JAX render pass and the host-side progressive driver."""
+"""The pure render pass (`render_pass`, with its `Diagnostics`) and the one host-side
+progressive driver (`progressive`: pass keys, merge-capacity re-runs, time budgets,
+progress bar, atomic snapshots) used by RGB `render` and spectral `render_spectral`."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import hashlib
 import time as _time
 
 import equinox as eqx
@@ -11,8 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from ._bidir import render_pass_bidir, uses_camera_paths, uses_light_paths
+from . import __version__, _io
 from ._config import RenderConfig
+from ._integrator import integrate
 from ._scene import Scene
 
 
@@ -35,15 +40,15 @@ def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderCo
     drives the merging radius schedule of `ppm`."""
     cam = scene.camera
     N = cam.height * cam.width * config.spp
-    img, bad, stats = render_pass_bidir(scene, key, config, pass_index)
-    zero = jnp.zeros((), jnp.int32)
+    img, bad, stats = integrate(scene, key, config, pass_index)
+    tech = config.techniques
     diag = Diagnostics(
         nonfinite=bad,
-        camera_paths=jnp.asarray(N if uses_camera_paths(config.algorithm) else 0, jnp.int32),
-        light_paths=jnp.asarray(N if uses_light_paths(config.algorithm) else 0, jnp.int32),
-        camera_vertices=stats.get("camera_vertices", zero).astype(jnp.int32),
-        light_vertices=stats.get("light_vertices", zero).astype(jnp.int32),
-        merge_overflow=stats.get("merge_overflow", jnp.zeros((), bool)),
+        camera_paths=jnp.asarray(N if tech.camera_paths else 0, jnp.int32),
+        light_paths=jnp.asarray(N if tech.light_paths else 0, jnp.int32),
+        camera_vertices=stats.camera_vertices,
+        light_vertices=stats.light_vertices,
+        merge_overflow=stats.merge_overflow,
     )
     return img, diag
 
@@ -53,16 +58,22 @@ def _render_pass_jit(scene, key, config, pass_index=0):
     return render_pass(scene, key, config, pass_index)
 
 
-def render_pass_host(scene, key, config, pass_index=0):
-    """Host-side pass: if the merging gather overflowed its static capacity, re-run the same
-    pass (same key) with twice the room (jax-md's re-allocation pattern); never truncate."""
-    import dataclasses
-
+def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overflow_of):
+    """Host side: run `jitted_pass(scene, key, config, pass_index)`; if the merging gather
+    overflowed its static capacity (`overflow_of(diagnostics)`), re-run the same pass (same
+    key) with twice the room (jax-md's re-allocation pattern); never truncate. Returns
+    (estimate, diagnostics, the config that had room)."""
     while True:
-        img, diag = _render_pass_jit(scene, key, config, pass_index)
-        if not bool(diag.merge_overflow):
-            return img, diag, config
+        est, diag = jitted_pass(scene, key, config, pass_index)
+        if not bool(overflow_of(diag)):
+            return est, diag, config
         config = dataclasses.replace(config, merge_capacity=2 * config.merge_capacity)
+
+
+def render_pass_host(scene, key, config, pass_index=0):
+    """`render_pass` (jitted) with the merge-capacity re-run of `with_retry`."""
+    return with_retry(_render_pass_jit, scene, key, config, pass_index,
+                      lambda d: d.merge_overflow)
 
 
 def pass_key(seed: int, index: int) -> PRNGKeyArray:
@@ -71,69 +82,89 @@ def pass_key(seed: int, index: int) -> PRNGKeyArray:
     return jax.random.fold_in(jax.random.key(seed), index)
 
 
-def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
-           time: float | None = None, seed: int = 0, snapshot_every: float | None = None,
-           out: str | None = None, config: RenderConfig | None = None, progress: bool = True,
-           exposure: float = 0.0, scene_path: str | None = None) -> np.ndarray:
-    """Progressive render: average independent passes until `passes` are done or `time`
-    seconds have elapsed (at least one pass). With `out`, writes EXR + PNG + JSON, and with
-    `snapshot_every` (seconds) writes atomic snapshots along the way, so a killed render
-    leaves its last snapshot intact."""
-    from . import _io as _film
-
+def check_budget(passes, time):
+    """The pass count / time budget of a progressive render (default 16 passes)."""
     if passes is None and time is None:
         passes = 16
     if passes is not None and passes < 1:
         raise ValueError(f"passes: must be >= 1, got {passes}")
     if time is not None and not time > 0:
         raise ValueError(f"time: must be > 0 seconds, got {time}")
-    config = config or RenderConfig(algorithm=algorithm)
-    if config.algorithm != algorithm:
-        raise ValueError(f"algorithm: {algorithm!r} disagrees with config.algorithm "
-                         f"{config.algorithm!r}")
+    return passes, time
+
+
+def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
+                snapshot_every=None, progress=True, exposure=0.0):
+    """Average independent passes until `passes` are done or `time` seconds have elapsed (at
+    least one pass). `run_pass(i) -> (estimate ndarray, nonfinite count)`; `to_image(mean)`
+    turns the running mean into the image written; `meta(passes, seconds, nonfinite,
+    snapshot)` its JSON record. With `out`, writes EXR + PNG + JSON at the end, and with
+    `snapshot_every` (seconds) atomic snapshots along the way, so a killed render leaves
+    its last snapshot intact. Returns (mean estimate float64, passes done, nonfinite)."""
+    passes, time = check_budget(passes, time)
     acc = None
     nonfinite = 0
     t0 = _time.perf_counter()
     last_snap = t0
-    bar = _film.Progress(total=passes, time_budget=time, enabled=progress)
+    bar = _io.Progress(total=passes, time_budget=time, enabled=progress)
     i = 0
     try:
         while True:
-            img, diag, config = render_pass_host(scene, pass_key(seed, i), config, i)
-            img = np.asarray(img, dtype=np.float64)
-            nonfinite += int(diag.nonfinite)
-            acc = img if acc is None else acc + img
+            est, bad = run_pass(i)
+            est = np.asarray(est, dtype=np.float64)
+            nonfinite += int(bad)
+            acc = est if acc is None else acc + est
             i += 1
             now = _time.perf_counter()
             bar.update(i, now - t0)
             done = (passes is not None and i >= passes) or (time is not None and now - t0 >= time)
             if out and snapshot_every is not None and not done and now - last_snap >= snapshot_every:
-                _film.write_outputs(out, (acc / i).astype(np.float32), _meta(
-                    scene, scene_path, config, i, now - t0, seed, nonfinite, snapshot=True),
-                    exposure)
+                _io.write_outputs(out, to_image(acc / i).astype(np.float32),
+                                    meta(i, now - t0, nonfinite, True), exposure)
                 last_snap = now
             if done:
                 break
     finally:
         bar.close()
-    image = (acc / i).astype(np.float32)
+    mean = acc / i
     if nonfinite:
         import warnings
 
         warnings.warn(f"render: {nonfinite} non-finite path contributions were zeroed")
     if out:
-        _film.write_outputs(out, image, _meta(scene, scene_path, config, i,
-                                              _time.perf_counter() - t0, seed, nonfinite,
-                                              snapshot=False), exposure)
-    return image
+        _io.write_outputs(out, to_image(mean).astype(np.float32),
+                            meta(i, _time.perf_counter() - t0, nonfinite, False), exposure)
+    return mean, i, nonfinite
+
+
+def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
+           time: float | None = None, seed: int = 0, snapshot_every: float | None = None,
+           out: str | None = None, config: RenderConfig | None = None, progress: bool = True,
+           exposure: float = 0.0, scene_path: str | None = None) -> np.ndarray:
+    """Progressive render (`progressive`) of `render_pass` with keys `pass_key(seed, i)`:
+    the mean of the passes as float32 [H, W, C]; with `out`, EXR + PNG + JSON (and
+    snapshots every `snapshot_every` seconds)."""
+    check_budget(passes, time)
+    config = config or RenderConfig(algorithm=algorithm)
+    if config.algorithm != algorithm:
+        raise ValueError(f"algorithm: {algorithm!r} disagrees with config.algorithm "
+                         f"{config.algorithm!r}")
+    state = {"config": config}
+
+    def run_pass(i):
+        img, diag, state["config"] = render_pass_host(scene, pass_key(seed, i), state["config"], i)
+        return img, diag.nonfinite
+
+    def meta(n, seconds, nonfinite, snapshot):
+        return _meta(scene, scene_path, state["config"], n, seconds, seed, nonfinite, snapshot)
+
+    mean, _, _ = progressive(run_pass, lambda m: m, meta, passes=passes, time=time, out=out,
+                             snapshot_every=snapshot_every, progress=progress,
+                             exposure=exposure)
+    return mean.astype(np.float32)
 
 
 def _meta(scene, scene_path, config, passes, seconds, seed, nonfinite, snapshot):
-    import dataclasses
-    import hashlib
-
-    from . import __version__
-
     h = None
     if scene_path is not None:
         with open(scene_path, "rb") as f:
@@ -145,3 +176,4 @@ def _meta(scene, scene_path, config, passes, seconds, seed, nonfinite, snapshot)
         "nonfinite": nonfinite, "snapshot": snapshot, "version": __version__,
         "width": scene.camera.width, "height": scene.camera.height,
     }
+

@@ -111,14 +111,3 @@ def sample_discrete(weights, u):
     i = jnp.sum(cdf <= u * total).astype(jnp.int32)
     i = jnp.minimum(i, weights.shape[0] - 1)
     return i, weights[i] / total
-
-
-def power_heuristic(a, b):
-    a2, b2 = a * a, b * b
-    s = a2 + b2
-    return jnp.where(s > 0, a2 / jnp.where(s > 0, s, 1.0), 0.0)
-
-
-def balance_heuristic(a, b):
-    s = a + b
-    return jnp.where(s > 0, a / jnp.where(s > 0, s, 1.0), 0.0)

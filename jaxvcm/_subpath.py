@@ -22,15 +22,16 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
-from . import _geometry as G
-from . import _lights as Lt
-from . import _materials as M
-from . import _media as Md
-from . import _vec as V
+from . import _geometry as geometry
+from . import _lights as lights
+from . import _materials as materials
+from . import _media as media
+from . import _vec as vec
 from ._config import RenderConfig
-from ._scene import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR, Scene, Water
+from ._scene import MAT_DIFFUSE, Scene, Water
 from ._vec import Vec3
 
 KIND_MEDIUM = 3  # vertex kind of a scattering event in the water (after the MAT_* kinds)
@@ -90,7 +91,7 @@ def dist_pdf(water: Water, seg_water, target_medium, d):
     if not water.enabled:
         return jnp.ones_like(d)
     ss = jax.lax.stop_gradient(water.sigma_s)
-    f = jnp.where(target_medium, Md.scatter_pdf(ss, d), Md.pass_prob(ss, d))
+    f = jnp.where(target_medium, media.scatter_pdf(ss, d), media.pass_prob(ss, d))
     return jnp.where(seg_water, f, 1.0)
 
 
@@ -98,7 +99,7 @@ def to_area(pdf_w, target_medium, target_n: Vec3, w: Vec3, d, seg_water, water: 
             infinite_source=False):
     """Solid-angle pdf of direction w (towards the target, distance d) -> area/volume pdf of
     the target vertex. From an infinite source the pdf is already per perpendicular area."""
-    cos = jnp.where(target_medium, 1.0, jnp.abs(V.dot(target_n, w)))
+    cos = jnp.where(target_medium, 1.0, jnp.abs(vec.dot(target_n, w)))
     g = jnp.where(infinite_source, cos, cos / jnp.maximum(d * d, 1e-30))
     return pdf_w * g * dist_pdf(water, seg_water, target_medium, d)
 
@@ -107,10 +108,10 @@ def bsdf_pdf(scene: Scene, kind, mat, medium_d: Vec3, wo: Vec3, wi: Vec3, n: Vec
     """Solid-angle pdf of sampling wi at a vertex with outgoing-side direction wo (pointing
     away from it), for the non-delta kinds; delta kinds return 0 (callers remap)."""
     albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
-    _, pdf_s = M.eval_bsdf(kind, albedo, wo, wi, n)
+    _, pdf_s = materials.eval_bsdf(kind, albedo, wo, wi, n)
     if scene.water.enabled:
         # phase functions: mu between the propagation direction (-wo) and wi
-        ph = Md.phase_eval(scene.water.phase_kind, scene.water, V.dot(-wo, wi))
+        ph = media.phase_eval(scene.water.phase_kind, scene.water, vec.dot(-wo, wi))
         pdf_s = jnp.where(kind == KIND_MEDIUM, jax.lax.stop_gradient(ph), pdf_s)
     return pdf_s
 
@@ -120,9 +121,9 @@ def eval_f(scene: Scene, kind, mat, wo: Vec3, wi: Vec3, n: Vec3):
     function in the medium (sigma_s is already in the throughput). [C]"""
     C = scene.channels
     albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
-    f, _ = M.eval_bsdf(kind, albedo, wo, wi, n)
+    f, _ = materials.eval_bsdf(kind, albedo, wo, wi, n)
     if scene.water.enabled:
-        ph = Md.phase_eval(scene.water.phase_kind, scene.water, V.dot(-wo, wi))
+        ph = media.phase_eval(scene.water.phase_kind, scene.water, vec.dot(-wo, wi))
         f = jnp.where(kind == KIND_MEDIUM, ph * jnp.ones((C,), ph.dtype), f)
     return f
 
@@ -130,12 +131,12 @@ def eval_f(scene: Scene, kind, mat, wo: Vec3, wi: Vec3, n: Vec3):
 def offset(p: Vec3, n: Vec3, w: Vec3) -> Vec3:
     scale = 1.0 + jnp.maximum(jnp.maximum(jnp.abs(p.x), jnp.abs(p.y)), jnp.abs(p.z))
     eps = 1e-4 * scale
-    s = jnp.where(V.dot(w, n) >= 0, eps, -eps)
+    s = jnp.where(vec.dot(w, n) >= 0, eps, -eps)
     return p + n * s
 
 
 def spawn(p: Vec3, n: Vec3, medium, w: Vec3) -> Vec3:
-    return V.where(medium, p, offset(p, n, w))
+    return vec.where(medium, p, offset(p, n, w))
 
 
 def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
@@ -147,9 +148,9 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     kinds = jnp.asarray(scene.materials.kind, jnp.int32)
 
     # ---- intersect, free flight ----
-    hit = G.intersect_scene(scene, s.o, s.d, 0.0, jnp.inf, cfg.march_steps)
+    hit = geometry.intersect_scene(scene, s.o, s.d, 0.0, jnp.inf, cfg.march_steps)
     if water.enabled:
-        ff = Md.sample_free_flight(water, hit.t, u[0], u[1])
+        ff = media.sample_free_flight(water, hit.t, u[0], u[1])
         scatter = s.alive & s.in_water & ff.scatter
         beta = jnp.where(s.in_water, s.beta * ff.weight, s.beta)
         t = jnp.where(s.in_water, ff.t, hit.t)
@@ -162,7 +163,7 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     p = s.o + s.d * jnp.where(jnp.isfinite(t), t, 0.0)
     wo = -s.d
     n = hit.n
-    dist = jnp.where(esc, 1.0, V.length(p - s.p_prev))
+    dist = jnp.where(esc, 1.0, vec.length(p - s.p_prev))
     mat = jnp.maximum(hit.mat, 0)
     kind = jnp.where(scatter, KIND_MEDIUM, jnp.where(surf, kinds[mat], KIND_NONE))
     albedo = scene.materials.albedo[mat]
@@ -175,21 +176,21 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
 
     # ---- emission seen by camera paths ----
     if radiance:
-        Le_s, _ = Lt.emitted_surface(scene, hit.light, wo, n, dist)
-        Le_e, _ = Lt.emitted_escape(scene, s.d)
+        Le_s, _ = lights.emitted_surface(scene, hit.light, wo, n, dist)
+        Le_e, _ = lights.emitted_escape(scene, s.d)
         Le = jnp.where(surf, Le_s, jnp.where(esc & ~s.in_water, Le_e, 0.0))
         v_alive = s.alive & (scatter | surf | (esc & ~s.in_water))
     else:
         Le = jnp.zeros((C,), dt)
         v_alive = s.alive & (scatter | surf)
     light_id = jnp.where(surf, hit.light, -1)
-    p_rec = V.where(esc, s.d, p)  # escaped: store the direction to the sky
+    p_rec = vec.where(esc, s.d, p)  # escaped: store the direction to the sky
 
     # ---- sample the continuation ----
-    bs = M.sample_bsdf(kind, albedo, ior, wo, n, u[2], u[3], u[4], radiance=radiance)
+    bs = materials.sample_bsdf(kind, albedo, ior, wo, n, u[2], u[3], u[4], radiance=radiance)
     if water.enabled:
-        wi_ph, pdf_ph = Md.phase_sample(water.phase_kind, water, s.d, u[2], u[3])
-        wi = V.where(scatter, wi_ph, bs.wi)
+        wi_ph, pdf_ph = media.phase_sample(water.phase_kind, water, s.d, u[2], u[3])
+        wi = vec.where(scatter, wi_ph, bs.wi)
         beta_next = jnp.where(scatter, beta, beta * bs.weight)
         pdf_w = jnp.where(scatter, pdf_ph, bs.pdf)
     else:
@@ -221,7 +222,7 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
 
     # ---- spawn ----
     o = spawn(p, n, scatter, wi)
-    in_water = (scatter | G.inside_water(water, o)) if water.enabled else s.in_water
+    in_water = (scatter | geometry.inside_water(water, o)) if water.enabled else s.in_water
     state = WalkState(o, p, n, wi, beta_next, alive, in_water, jax.lax.stop_gradient(pdf_w),
                       delta, scatter, jnp.zeros((), bool), jnp.zeros((), bool), dispersed)
     return state, vertex
@@ -247,14 +248,73 @@ def trace(scene: Scene, cfg: RenderConfig, radiance: bool, s0: WalkState, u, n_s
 def camera_start(scene: Scene, o: Vec3, d: Vec3, pdf_w) -> WalkState:
     dt = o.x.dtype
     C = scene.channels
-    z = jnp.zeros((), dt)
     f = jnp.zeros((), bool)
-    return WalkState(o, o, V.from_array(scene.camera.forward), d, jnp.ones((C,), dt),
-                     jnp.ones((), bool), G.inside_water(scene.water, o), pdf_w, f, f, f,
+    return WalkState(o, o, vec.from_array(scene.camera.forward), d, jnp.ones((C,), dt),
+                     jnp.ones((), bool), geometry.inside_water(scene.water, o), pdf_w, f, f, f,
                      jnp.ones((), bool), f)
 
 
-def light_start(scene: Scene, e: Lt.Emission) -> WalkState:
+def light_start(scene: Scene, e: lights.Emission) -> WalkState:
     return WalkState(e.o, e.p, e.n, e.d, e.beta1, jnp.any(e.beta1 > 0),
-                     G.inside_water(scene.water, e.o), e.pdf_dir, jnp.zeros((), bool),
+                     geometry.inside_water(scene.water, e.o), e.pdf_dir, jnp.zeros((), bool),
                      jnp.zeros((), bool), e.infinite, e.infinite, jnp.zeros((), bool))
+
+
+# ---------------------------------------------------------------- subpaths with their start vertex
+class PathEnds(NamedTuple):
+    """Per-vertex arrays of one subpath including its start vertex (index 0): [D+1, N, ...]."""
+
+    p: Vec3
+    n: Vec3
+    wo: Vec3
+    beta: Array  # [D+1, N, C]
+    A: Array  # light-side pdf (RR-free)
+    B: Array  # camera-side pdf (RR-free)
+    q: Array  # local RR survival probability
+    delta: Array
+    medium: Array
+    kind: Array
+    mat: Array
+    seg_water: Array
+    alive: Array
+    disp: Array  # beta carries the hero-only x C of a dispersive refraction (`_subpath`)
+
+
+def _stack0(v0, rest):
+    return jnp.concatenate([v0[None], rest], axis=0)
+
+
+def _ends(p0: Vec3, n0: Vec3, wo0: Vec3, beta0, A0, B0, verts: Vertex, rest_A, rest_B) -> PathEnds:
+    N = A0.shape[0]
+    f = jnp.zeros((N,), bool)
+    st = _stack0
+    return PathEnds(
+        Vec3(*(st(a, b) for a, b in zip(p0, verts.p))),
+        Vec3(*(st(a, b) for a, b in zip(n0, verts.n))),
+        Vec3(*(st(a, b) for a, b in zip(wo0, verts.wo))),
+        st(beta0, verts.beta), st(A0, rest_A), st(B0, rest_B),
+        st(jnp.ones((N,), A0.dtype), verts.q), st(f, verts.delta),
+        st(f, verts.kind == KIND_MEDIUM), st(jnp.full((N,), -1, jnp.int32), verts.kind),
+        st(jnp.zeros((N,), jnp.int32), verts.mat), st(f, verts.seg_water),
+        st(jnp.ones((N,), bool), verts.alive), st(f, verts.dispersed))
+
+
+def camera_ends(scene: Scene, cam_o: Vec3, verts: Vertex, n_paths: int) -> PathEnds:
+    """z_0 (the pinhole: B = 1, never a delta vertex) followed by the camera records."""
+    dt = cam_o.x.dtype
+    N = n_paths
+    cf = vec.from_array(jnp.broadcast_to(scene.camera.forward, (N, 3)))
+    one = jnp.ones((N,), dt)
+    return _ends(cam_o, cf, cf, jnp.ones((N, scene.channels), dt), one, one, verts,
+                 verts.pdf_rev, verts.pdf_fwd)
+
+
+def light_ends(scene: Scene, e: lights.Emission, rev0, verts: Vertex, n_paths: int) -> PathEnds:
+    """y_0 (on the light, or at infinity) followed by the light records."""
+    return _ends(e.p, e.n, -e.d, e.beta0, e.pdf_pos, rev0, verts, verts.pdf_fwd, verts.pdf_rev)
+
+
+def rows(ends: PathEnds, idx) -> PathEnds:
+    """Rows idx ([J], static) of every field: [J, N, ...]."""
+    idx = np.asarray(idx)
+    return jax.tree.map(lambda a: a[idx], ends)

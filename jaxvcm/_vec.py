@@ -38,18 +38,10 @@ class Vec3(NamedTuple):
         return Vec3(self.x / s, self.y / s, self.z / s)
 
 
-def vec3(x, y, z) -> Vec3:
-    return Vec3(jnp.asarray(x), jnp.asarray(y), jnp.asarray(z))
-
-
 def from_array(a) -> Vec3:
     """`(..., 3)` array -> Vec3 of `(...)` arrays."""
     a = jnp.asarray(a)
     return Vec3(a[..., 0], a[..., 1], a[..., 2])
-
-
-def to_array(v: Vec3) -> Array:
-    return jnp.stack([v.x, v.y, v.z], axis=-1)
 
 
 def dot(a: Vec3, b: Vec3) -> Array:

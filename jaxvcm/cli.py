@@ -132,7 +132,7 @@ def _default_out(scene_path: str) -> str:
 def _water_model(text: str | None):
     """--water 'a_cdom=0.05,b_p=0.1' -> WaterModel (pure water for None)."""
     from ._fit import WATER_FIELDS
-    from ._water_optics import WaterModel
+    from ._spectral import WaterModel
 
     kw = {}
     for item in (text or "").split(","):

@@ -13,7 +13,7 @@ import pytest
 
 import jaxvcm
 from jaxvcm import RenderConfig
-from jaxvcm._bidir import technique_images
+from jaxvcm import technique_images
 from jaxvcm._materials import fresnel_dielectric
 
 from . import _analytic as A
@@ -35,7 +35,7 @@ def _tech(scene, keys, cfg):
 
 
 def technique_stats(scene, cfg, passes, seed=0, batch=8):
-    """{(s, t): [P, H, W, C]} over `passes` independent passes."""
+    """{Technique: [P, H, W, C]} over `passes` independent passes."""
     out = {}
     for b0 in range(0, passes, batch):
         keys = jnp.stack([jaxvcm.pass_key(seed, b0 + i) for i in range(min(batch, passes - b0))])
@@ -61,7 +61,8 @@ def test_sphere_furnace_all_algorithms_per_path_length(alg, spp):
                                                spp=spp),
                            passes=24 if alg == "lt" else 8)
     for k in range(1, D + 1):
-        per = sum(v for (s, t), v in tech.items() if s + t - 1 == k)  # [P, H, W, C]
+        per = sum(v for lab, v in tech.items() if lab.s + lab.t - 1 == k)  # [P, H, W, C]
+        assert all(lab.kind == "connection" for lab in tech)
         x = per.mean(axis=(1, 2))  # image mean per pass: P i.i.d. samples
         assert np.all(np.isfinite(per))
         assert_close(x.mean(0), x.std(0, ddof=1) / np.sqrt(len(x)), Le * a ** (k - 1),
@@ -95,9 +96,11 @@ def test_technique_images_sum_to_the_bdpt_image():
     # every technique with k = s + t - 1 <= D is present: s = 0..D, t = 1..D+1
     expected = {(s, t) for s in range(0, D + 1) for t in range(1, D + 2)
                 if 1 <= s + t - 1 <= D and not (s == 0 and t == 1)}
-    assert set(tech) == expected
-    total = sum(np.asarray(v, np.float64) for v in tech.values())
-    for v in tech.values():
+    assert all(lab.kind == "connection" for lab in tech.labels)
+    assert {(lab.s, lab.t) for lab in tech.labels} == expected
+    assert len(tech.labels) == len(expected)
+    total = sum(np.asarray(v, np.float64) for _, v in tech.items())
+    for _, v in tech.items():
         assert np.all(np.isfinite(np.asarray(v)))
     np.testing.assert_allclose(np.asarray(img), total, rtol=1e-5, atol=1e-6)
     assert int(diag.nonfinite) == 0

@@ -107,11 +107,11 @@ def test_sphere_furnace_merging_per_path_length(alg):
                                             radius=0.01), passes=8)
     for k in range(1, D + 1):
         per = 0
-        for key, v in tech.items():
-            if key[0] == -1:
+        for lab, v in tech.items():
+            if lab.kind == "merge":
                 # merges at z_j have path lengths j + i for photons y_i: not separable per k
                 continue
-            if key[0] + key[1] - 1 == k:
+            if lab.s + lab.t - 1 == k:
                 per = per + v
         if k == 1:  # no merging technique for k = 1 (x_0 on the light, x_1 the camera)
             x = per.mean(axis=(1, 2))

@@ -8,7 +8,6 @@ techniques from their definition (products of pdfs, no log-space trick).
 
 from __future__ import annotations
 
-import math
 from fractions import Fraction
 
 import jax
@@ -152,7 +151,7 @@ def test_sun_paths_are_not_hit_by_camera_rays():
 
 # ---------------------------------------------------------------- the renderer's assembly
 from jaxvcm import RenderConfig  # noqa: E402
-from jaxvcm._connect import Pdfs, weight  # noqa: E402
+from jaxvcm._path import Pdfs, weight  # noqa: E402
 
 
 @st.composite
@@ -173,7 +172,7 @@ def full_paths(draw):
 def test_renderer_assembly_from_subpaths_sums_to_one(path, garbage, mis):
     # For each technique s the renderer sees two subpaths, each with stored pdfs that are
     # only right away from the join (the last two vertices of each side are re-evaluated
-    # at the join, `_connect.path_pdfs`). Fill those stored slots with garbage, pass the
+    # at the join, `_path.path_pdfs`). Fill those stored slots with garbage, pass the
     # true values as the join overrides, and the weights over all s must sum to one and
     # equal the oracle built from the true full-path pdfs with each direction's roulette.
     k, A, B, q, delta, dl, inf = path
@@ -319,7 +318,7 @@ def _geometric_path(rng, k, scene):
     from jaxvcm import _geometry as G
     from jaxvcm import _lights as Lt
     from jaxvcm import _subpath as SP
-    from jaxvcm._connect import camera_importance
+    from jaxvcm._camera import camera_importance
     from jaxvcm._vec import Vec3
 
     f64 = jnp.float64
@@ -395,7 +394,7 @@ def _geometric_path(rng, k, scene):
 def test_geometric_random_paths_in_the_pool(seed, k):
     # Random vertex positions on surfaces, in the water and on the (delta) water surface of
     # scenes/pool.toml, pdfs from the renderer's helpers, assembled by the renderer's
-    # `_connect.weight` with garbage in the join slots: weights over all techniques sum to 1
+    # `_path.weight` with garbage in the join slots: weights over all techniques sum to 1
     # (1e-10, float64) and equal the exact oracle.
     import jaxvcm
 

@@ -8,7 +8,7 @@ import os
 
 import numpy as np
 
-from .._water_optics import WaterModel, pope_fry_table
+from .._spectral import WaterModel, pope_fry_table
 from ._colour import to_srgb_host
 from ._rgb import FitResult
 from ._spectral import SpectralFitResult, absorption_band

@@ -28,7 +28,7 @@ import numpy as np
 
 from .._config import RenderConfig
 from .._spectral import SpectralScene
-from .._water_optics import WaterModel
+from .._spectral import WaterModel
 from ._colour import SPACES, delta_e2000
 from ._config import WATER_FIELDS
 from ._model import Region, _named, _resolve, residuals, spectral_region_colours_fn

@@ -13,7 +13,7 @@ sigma_s) as C independent channels and never assumes C = 3. A spectral pass ther
 2. instantiates the RGB scene with every spectral quantity evaluated at these C
    wavelengths (`SpectralScene.at_wavelengths`): albedo spectra and light spectra from
    tables precomputed at scene load, water sigma_a = a_w + a_x and sigma_s = b_w + b_p from
-   `_water_optics.WaterModel`, the CIE 1931 2 degree colour-matching functions;
+   `_water.WaterModel`, the CIE 1931 2 degree colour-matching functions;
 3. renders with the unchanged `render_pass` (C channels = C wavelengths; paths are shared
    by all wavelengths, which is exact with one water index for all of them);
 4. converts to CIE 1931 XYZ with the estimator
@@ -70,12 +70,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, Float
 
-from ._config import RenderConfig
-from ._render import Diagnostics, render_pass
-from ._scene import LIGHT_SUN, PHASE_HG, PHASE_WATER, Scene
-from ._water_optics import PURE_WATER_PHASE_B, WaterModel, water_ior
+from .._scene import LIGHT_SUN, PHASE_HG, PHASE_WATER, Scene
+from ._water import PURE_WATER_PHASE_B, WaterModel, water_ior
 
 LAMBDA_MIN = 380.0  # nm
 LAMBDA_MAX = 720.0  # nm (exclusive upper end of the hero range)
@@ -150,19 +148,6 @@ def _interp_rows(lam: Array, table: Array) -> Array:
     i = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, K - 2)
     f = jnp.clip(x - i.astype(x.dtype), 0.0, 1.0).astype(table.dtype)
     return table[..., i] * (1 - f) + table[..., i + 1] * f
-
-
-def sample_wavelengths(key: PRNGKeyArray, n: int, dtype=jnp.float32) -> Array:
-    """Hero wavelength uniform on [380, 720) and its n - 1 equally spaced rotations [n]."""
-    u = jax.random.uniform(key, (), dtype)
-    offs = jnp.arange(n, dtype=dtype) / n
-    return LAMBDA_MIN + LAMBDA_RANGE * jnp.mod(u + offs, 1.0)
-
-
-def split_pass_key(key: PRNGKeyArray) -> tuple[PRNGKeyArray, PRNGKeyArray]:
-    """(wavelength key, key handed to the core's `render_pass`) of one spectral pass."""
-    k_lam, k_render = jax.random.split(key)
-    return k_lam, k_render
 
 
 class SpectralScene(eqx.Module):
@@ -278,86 +263,3 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
     water = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dt) if eqx.is_array(x) else x, water)
     return SpectralScene(scene, water, A(albedo), A(emission), A(_tables()["cmf"]), A(n),
                          n_wavelengths, kind, pb, modes[dispersion], phase == "scene")
-
-
-class SpectralDiagnostics(eqx.Module):
-    core: Diagnostics  # the core's per-pass diagnostics
-    wavelengths: Float[Array, "C"]  # nm, the pass's hero wavelength first
-    radiance: Float[Array, "H W C"]  # the raw per-wavelength radiance of the pass
-
-
-def render_pass_spectral(spectral: SpectralScene, key: PRNGKeyArray,
-                         config: RenderConfig = RenderConfig(), pass_index=0
-                         ) -> tuple[Float[Array, "H W 3"], SpectralDiagnostics]:
-    """One spectral pass: an unbiased per-pixel estimate of CIE 1931 XYZ (over 380-720 nm).
-    Pure and jit/vmap/grad-able (config is static); shapes depend only on the static
-    n_wavelengths and the image size."""
-    k_lam, k_render = split_pass_key(key)
-    lam = sample_wavelengths(k_lam, spectral.n_wavelengths, spectral.scene.bounds.dtype)
-    if spectral.dispersion == "off":
-        scene_c = spectral.at_wavelengths(lam)
-        L, diag = render_pass(scene_c, k_render, config, pass_index)
-    elif spectral.dispersion == "hero":
-        scene_c = spectral.at_wavelengths(lam, spectral.ior_at(lam))
-        L, diag = render_pass(scene_c, k_render, config, pass_index)
-    else:
-        # one single-wavelength scene per wavelength, each with its own index; the same core
-        # key for all (correlated, each one unbiased)
-        def one(l1, n1):
-            return render_pass(spectral.at_wavelengths(l1, n1), k_render, config, pass_index)
-
-        Ls, diags = jax.vmap(one)(lam[:, None], spectral.ior_at(lam))  # [C, H, W, 1]
-        L = jnp.moveaxis(Ls[..., 0], 0, -1)
-        diag = jax.tree_util.tree_map(
-            lambda x: jnp.any(x) if x.dtype == jnp.bool_ else jnp.sum(x).astype(x.dtype), diags)
-    xyz = L @ spectral.xyz_weights(lam).astype(L.dtype)
-    return xyz, SpectralDiagnostics(diag, lam, L)
-
-
-@functools.partial(jax.jit, static_argnums=(2,))
-def _render_pass_spectral_jit(spectral, key, config, pass_index=0):
-    return render_pass_spectral(spectral, key, config, pass_index)
-
-
-def xyz_to_srgb(xyz) -> np.ndarray:
-    """CIE XYZ (Y = 1 for the white of a unit white light) -> linear sRGB (colour-science)."""
-    import colour
-
-    return np.asarray(colour.XYZ_to_RGB(np.asarray(xyz, np.float64), "sRGB"))
-
-
-def render_spectral(spectral: SpectralScene, passes: int = 16, seed: int = 0,
-                    config: RenderConfig | None = None, out: str | None = None,
-                    exposure: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Host driver: average `passes` spectral passes (keys `pass_key(seed, i)`) in XYZ and
-    convert to linear sRGB at the end. Re-runs a pass with twice the merge capacity when the
-    hash-grid gather overflowed (as `render_pass_host`). Returns (linear sRGB [H, W, 3],
-    XYZ [H, W, 3]); with `out`, writes the sRGB image as EXR + PNG + JSON."""
-    from ._render import pass_key
-
-    if passes < 1:
-        raise ValueError(f"passes: must be >= 1, got {passes}")
-    config = config or RenderConfig()
-    acc = None
-    nonfinite = 0
-    for i in range(passes):
-        while True:
-            xyz, diag = _render_pass_spectral_jit(spectral, pass_key(seed, i), config, i)
-            if not bool(diag.core.merge_overflow):
-                break
-            config = dataclasses.replace(config, merge_capacity=2 * config.merge_capacity)
-        nonfinite += int(diag.core.nonfinite)
-        x = np.asarray(xyz, np.float64)
-        acc = x if acc is None else acc + x
-    xyz = acc / passes
-    rgb = xyz_to_srgb(xyz)
-    if out:
-        from . import _io as _film
-
-        meta = {"scene_name": spectral.scene.name, "mode": "spectral",
-                "n_wavelengths": spectral.n_wavelengths, "algorithm": config.algorithm,
-                "config": dataclasses.asdict(config), "passes": passes, "seed": seed,
-                "nonfinite": nonfinite, "width": spectral.scene.camera.width,
-                "height": spectral.scene.camera.height}
-        _film.write_outputs(out, rgb.astype(np.float32), meta, exposure)
-    return rgb, xyz

@@ -80,13 +80,6 @@ def pope_fry_table() -> tuple[np.ndarray, np.ndarray]:
 
 
 @functools.cache
-def zhang_table() -> tuple[np.ndarray, np.ndarray]:
-    """(wavelengths nm, b_w 1/m) of Zhang, Hu & He 2009 (S = 0), 400-700 nm every 50 nm."""
-    _, r = _read_csv("water_scattering_zhang_2009.csv")
-    return r[:, 0], r[:, 1]
-
-
-@functools.cache
 def sellmeier_coefficients() -> tuple[np.ndarray, np.ndarray]:
     """(B [4], C [4] um^2) of Daimon & Masumura 2007 (20 C)."""
     _, r = _read_csv("water_ior_daimon_masumura_2007.csv")
