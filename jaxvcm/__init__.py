@@ -5,7 +5,7 @@ its parts, the progressive drivers, spectral mode and water optics, fitting, inp
 Everything else is private (`jaxvcm._*`) and may change.
 """
 
-__version__ = "0.1.0"
+from ._version import __version__ as __version__
 
 # ---- scenes and configuration
 from ._config import ALGORITHMS as ALGORITHMS

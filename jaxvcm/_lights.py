@@ -17,7 +17,7 @@ from jaxtyping import Array
 
 from . import _sampling as sampling
 from . import _vec as vec
-from ._scene import LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, Scene
+from ._scene import LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, Scene, bounding_sphere
 from ._vec import Vec3
 
 
@@ -185,8 +185,6 @@ class Emission(NamedTuple):
 def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
     """Pdf of the emission direction w (leaving y_0) for light `light` with normal n: solid
     angle for area lights; for sun and sky the perpendicular-area pdf 1/(pi R^2)."""
-    from ._scene import bounding_sphere
-
     lights = scene.lights
     _, rb = bounding_sphere(scene)
     dt = n.x.dtype
@@ -226,8 +224,6 @@ def light_point_pdf(scene: Scene, light, w_inf: Vec3):
 
 def sample_emission(scene: Scene, u) -> Emission:
     """Sample y_0 and the first direction of a light subpath. u: 5 uniforms."""
-    from ._scene import bounding_sphere
-
     lights = scene.lights
     sel = selection_pdf(scene)
     li, _ = sampling.sample_discrete(sel, u[0])

@@ -15,7 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from . import __version__, _io
+from . import _io
+from ._version import __version__
 from ._config import RenderConfig
 from ._integrator import integrate
 from ._scene import Scene

@@ -13,6 +13,8 @@ import importlib.util
 import math
 import os
 import sys
+
+import numpy as np
 from pathlib import Path
 
 # the old private name is kept: the commands below and scripts under fits/ call it
@@ -220,15 +222,11 @@ def _cmd_render(a) -> int:
 
 
 def _fmt_vec(v) -> str:
-    import numpy as np
-
     return "[" + ", ".join(f"{x:.4g}" for x in np.asarray(v, dtype=np.float64).ravel()) + "]"
 
 
 def describe(scene) -> str:
     """A human-readable summary of a loaded scene."""
-    import numpy as np
-
     from ._scene import LIGHT_NAMES, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES, PHASE_NAMES
 
     cam = scene.camera

@@ -3,6 +3,8 @@ renderer's behaviour unchanged.
 
 `cases()` computes a few small renders (PT, BDPT, VCM with both MIS forms, PPM, a spectral
 pass with hero dispersion) and one water fit, all through the public API with fixed keys.
+`python -m tests._golden` records them; they were recorded on commit 4dc2ea4 (the tree
+before the re-layout: `git worktree add /tmp/old 4dc2ea4`, then run it there).
 `python -m tests._golden` writes them to `tests/data/golden.npz`; `tests/test_golden.py`
 recomputes them and compares. They were recorded before the package was re-laid out
 (issue: architecture), so every later change must reproduce them or explain why not.
@@ -20,20 +22,42 @@ PATH = os.path.join(HERE, "data", "golden.npz")
 SIZE = 12  # pixels on a side: every case is compile-bound, the image size barely matters
 
 
-def _scene(name, **kw):
+def _scene(name, size=SIZE):
     import jaxvcm
 
-    return jaxvcm.load_scene(os.path.join(ROOT, "scenes", f"{name}.toml"), width=SIZE,
-                             height=SIZE, **kw)
+    return jaxvcm.load_scene(os.path.join(ROOT, "scenes", f"{name}.toml"), width=size,
+                             height=size)
 
 
-RENDERS = {  # name -> (scene, RenderConfig keywords, pass index)
-    "pt_pool": ("pool", dict(algorithm="pt", max_depth=5, rr_depth=2), 0),
-    "bdpt_pool": ("pool", dict(algorithm="bdpt", max_depth=4, rr_depth=2), 0),
-    "vcm_pool_sun": ("pool_sun", dict(algorithm="vcm", max_depth=4, rr_depth=2), 3),
-    "vcm_recursive_pool_sun": ("pool_sun", dict(algorithm="vcm", max_depth=4, rr_depth=2,
-                                                mis_form="recursive"), 3),
-    "ppm_pool": ("pool", dict(algorithm="ppm", max_depth=4, rr_depth=2, radius=0.05), 1),
+def _medium_furnace():
+    import jaxvcm
+
+    from . import _analytic as A
+
+    return jaxvcm.scene_from_dict(A.medium_furnace(np.array([1.0, 2.0, 0.5]), (0.3, 0.6, 1.2),
+                                                   w=8, h=8))
+
+
+# name -> (scene, RenderConfig keywords, key (seed, pass index), driver). Each case is the
+# same compiled program as an assertion test elsewhere in the suite (named in the comment),
+# so the persistent compilation cache serves both and this check costs the suite little.
+RENDERS = {
+    # tests/test_hard_cases.py::test_render_pass_vmaps_over_keys_and_jits
+    "pt_pool": (lambda: _scene("pool", 8), dict(algorithm="pt", max_depth=3), (7, 0), "jit"),
+    # tests/test_bidir.py::test_technique_images_sum_to_the_bdpt_image
+    "bdpt_pool": (lambda: _scene("pool", 12), dict(algorithm="bdpt", max_depth=5), (7, 1),
+                  "jit"),
+    # tests/test_merge.py::test_merging_extreme_radii_are_finite[0.5-vcm] / [0.5-ppm]
+    "vcm_pool_sun": (lambda: _scene("pool_sun", 8), dict(algorithm="vcm", max_depth=4,
+                                                         radius=0.5), (7, 3), "host"),
+    "ppm_pool_sun": (lambda: _scene("pool_sun", 8), dict(algorithm="ppm", max_depth=4,
+                                                         radius=0.5), (7, 2), "host"),
+    # tests/test_mis_recursive.py::test_recursive_render_equals_explicit[vcm]
+    "vcm_medium_furnace": (_medium_furnace, dict(algorithm="vcm", max_depth=3, radius=0.1),
+                           (5, 0), "host"),
+    "vcm_recursive_medium_furnace": (_medium_furnace, dict(algorithm="vcm", max_depth=3,
+                                                           radius=0.1, mis_form="recursive"),
+                                     (5, 0), "host"),
 }
 
 
@@ -42,9 +66,12 @@ def render_case(name):
 
     import jaxvcm
 
-    scene_name, kw, index = RENDERS[name]
-    img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(
-        _scene(scene_name), jaxvcm.pass_key(7, index), jaxvcm.RenderConfig(**kw), index)
+    make, kw, (seed, index), driver = RENDERS[name]
+    scene, cfg, key = make(), jaxvcm.RenderConfig(**kw), jaxvcm.pass_key(seed, index)
+    if driver == "jit":  # called as those tests call it: pass index 0 (a constant)
+        img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(scene, key, cfg)
+    else:
+        img, diag, _ = jaxvcm.render_pass_host(scene, key, cfg, index)
     assert int(diag.nonfinite) == 0 and not bool(diag.merge_overflow)
     return np.asarray(img)
 
@@ -54,11 +81,10 @@ def spectral_case():
 
     import jaxvcm
 
-    ss = jaxvcm.spectral_scene(_scene("pool"), jaxvcm.WaterModel(pure_scattering=False),
+    ss = jaxvcm.spectral_scene(_scene("pool", 8), jaxvcm.WaterModel(pure_scattering=False),
                                n_wavelengths=4, dispersion="hero")
     xyz, _ = jax.jit(jaxvcm.render_pass_spectral, static_argnums=2)(
-        ss, jaxvcm.pass_key(3, 0), jaxvcm.RenderConfig(algorithm="pt", max_depth=4,
-                                                        rr_depth=2))
+        ss, jaxvcm.pass_key(3, 0), jaxvcm.RenderConfig(algorithm="pt", max_depth=3))
     return np.asarray(xyz)
 
 
@@ -87,6 +113,12 @@ if __name__ == "__main__":
 
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_numpy_dtype_promotion", "strict")
+    import jaxvcm
+
+    if not hasattr(jaxvcm, "render_pass_host"):  # recording on the tree before the re-layout
+        from jaxvcm._render import render_pass_host
+
+        jaxvcm.render_pass_host = render_pass_host
     values = cases()
     np.savez_compressed(PATH, **values)
     for k, v in values.items():

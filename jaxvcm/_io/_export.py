@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import os
 
+import jax.numpy as jnp
 import numpy as np
 
+from .._geometry import water_height
 from .._scene import MAT_DIELECTRIC, MAT_MIRROR, Scene
+from ._images import atomic_path
 
 FORMATS = (".glb", ".ply", ".obj")
 
@@ -65,10 +68,7 @@ def scene_meshes(scene: Scene, water_resolution: int = 128, sphere_subdivisions:
 
 def water_mesh(scene: Scene, n: int = 128):
     """The water heightfield as an n x n vertex grid over the footprint, normals up."""
-    import jax.numpy as jnp
     import trimesh
-
-    from .._geometry import water_height
 
     w = scene.water
     if n < 2:
@@ -95,8 +95,6 @@ def export_scene(scene: Scene, path, water_resolution: int = 128) -> str:
     (.glb: one named node per shape, .obj: one object per shape, .ply: one merged mesh).
     The file is written atomically. Returns the path."""
     import trimesh
-
-    from ._images import atomic_path
 
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
