@@ -54,7 +54,7 @@ QUICK_BUDGETS = (0.5, 1.0)
 QUICK_REFERENCE_TIME = 5.0
 THROUGHPUT_DEPTH = 8
 TARGET_SCENE = "pool.toml"
-TARGET_PATHS_PER_S = 1.5e6  # the issue's target: PT, depth 8, pool.toml, 2-core machine
+TARGET_PATHS_PER_S = 1.5e6  # target: PT, depth 8, pool.toml, 2-core machine
 TARGET_CPUS = 2
 REF_SEED_OFFSET = 1_000_003  # reference seed = seed + offset: independent samples
 MAX_SEED = 2**30
@@ -152,7 +152,7 @@ def _parser() -> argparse.ArgumentParser:
                    f"{QUICK_REFERENCE_TIME:g} s, throughput at the same small size")
     p.add_argument("--quiet", action="store_true", help="no progress messages on stderr")
     g = p.add_argument_group(
-        "vertex-merging modes (issue 4; each writes its own section of --out, replaced in "
+        "vertex-merging modes (each writes its own section of --out, replaced in "
         "place or appended, and <out stem>_<mode>.json; --scenes, --algorithms, --size, "
         "--max-depth and --seed apply, --quick only sets size 32, other options are "
         "ignored)")
