@@ -20,7 +20,7 @@ import pytest
 
 import jaxvcm
 from jaxvcm._fit import load_fit_config
-from jaxvcm._water_optics import WaterModel, pope_fry_table
+from jaxvcm._spectral import WaterModel, pope_fry_table
 from jaxvcm.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent

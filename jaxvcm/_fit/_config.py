@@ -15,7 +15,7 @@ import numpy as np
 from .._config import ALGORITHMS, RenderConfig
 from .._io._scene_file import _Ctx, scene_from_dict
 from .._spectral import spectral_scene
-from .._water_optics import WaterModel
+from .._spectral import WaterModel
 from ._colour import SPACES
 from ._model import Region
 
