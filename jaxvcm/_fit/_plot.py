@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 
+from .._io import atomic_path
 from .._spectral import WaterModel, pope_fry_table
 from ._colour import to_srgb_host
 from ._rgb import FitResult
@@ -76,17 +77,21 @@ def plot_fit(res: FitResult, path: str) -> None:
     plt.close(fig)
 
 
-def write_outputs(res: FitResult, out_dir: str) -> tuple[str, str]:
-    """fit.json (`FitResult.to_dict`) + fit.png (`plot_fit`) in out_dir -> their paths."""
+def _write(record: dict, draw, res, out_dir: str) -> tuple[str, str]:
+    """fit.json (atomically) + fit.png (`draw(res, path)`) in out_dir -> their paths."""
     os.makedirs(out_dir, exist_ok=True)
     jp = os.path.join(out_dir, "fit.json")
     pp = os.path.join(out_dir, "fit.png")
-    with open(jp + ".tmp", "w") as f:
-        json.dump(res.to_dict(), f, indent=1)
-    os.replace(jp + ".tmp", jp)
-    plot_fit(res, pp)
+    with atomic_path(jp) as tmp:
+        with open(tmp, "w") as f:
+            json.dump(record, f, indent=1)
+    draw(res, pp)
     return jp, pp
 
+
+def write_outputs(res: FitResult, out_dir: str) -> tuple[str, str]:
+    """fit.json (`FitResult.to_dict`) + fit.png (`plot_fit`) in out_dir -> their paths."""
+    return _write(res.to_dict(), plot_fit, res, out_dir)
 
 
 def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
@@ -137,13 +142,4 @@ def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
 
 def write_outputs_spectral(res: SpectralFitResult, out_dir: str) -> tuple[str, str]:
     """fit.json (with mode = "spectral") + fit.png in out_dir (like `write_outputs`)."""
-    os.makedirs(out_dir, exist_ok=True)
-    jp = os.path.join(out_dir, "fit.json")
-    pp = os.path.join(out_dir, "fit.png")
-    d = res.to_dict()
-    d["mode"] = "spectral"
-    with open(jp + ".tmp", "w") as f:
-        json.dump(d, f, indent=1)
-    os.replace(jp + ".tmp", jp)
-    plot_fit_spectral(res, pp)
-    return jp, pp
+    return _write({**res.to_dict(), "mode": "spectral"}, plot_fit_spectral, res, out_dir)
