@@ -1,5 +1,4 @@
-"""Test configuration: x64 available, strict dtype promotion, persistent compilation cache,
-unoptimised XLA code generation (compile time dominates).
+"""Test configuration: x64 available, strict dtype promotion, persistent compilation cache.
 
 x64 is enabled so that float64 oracles and float64 renders are possible; the renderer's
 own dtype comes from the scene (float32 by default), and strict promotion turns any
@@ -8,15 +7,7 @@ accidental float32/float64 mixing inside the kernels into an error.
 
 import os
 
-# The suite is compile-bound (hundreds of distinct XLA programs, most run for well under a
-# second): LLVM's optimisation passes are most of the compile time and buy nothing here.
-# Level 0 cuts the compile time of a VCM pass by about a third; results agree with the
-# optimised build to float32 round-off (tests/test_golden.py holds either way). Set before
-# JAX initialises its CPU backend; subprocesses (CLI tests) inherit it. An XLA_FLAGS of the
-# caller's own is kept as it is.
-os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
-
-import jax  # noqa: E402
+import jax
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
