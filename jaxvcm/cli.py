@@ -13,12 +13,20 @@ import importlib.util
 import math
 import os
 import sys
-
-import numpy as np
+import time
 from pathlib import Path
 
-# the old private name is kept: the commands below and scripts under fits/ call it
+import numpy as np
+
+import jaxvcm
+
+from . import _fit
 from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
+from ._config import ALGORITHMS, RenderConfig
+from ._fit import WATER_FIELDS
+from ._io import FORMATS, export_scene
+from ._scene import LIGHT_NAMES, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES, PHASE_NAMES
+from ._spectral import WaterModel
 
 PROG = "jaxvcm"
 
@@ -65,7 +73,6 @@ def _pos_int(lo=1):
 
 
 def _parser() -> argparse.ArgumentParser:
-    from ._config import ALGORITHMS
 
     p = _Parser(prog=PROG, description="Differentiable JAX renderer for analytic water scenes.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -133,9 +140,6 @@ def _default_out(scene_path: str) -> str:
 
 def _water_model(text: str | None):
     """--water 'a_cdom=0.05,b_p=0.1' -> WaterModel (pure water for None)."""
-    from ._fit import WATER_FIELDS
-    from ._spectral import WaterModel
-
     kw = {}
     for item in (text or "").split(","):
         if not item.strip():
@@ -156,9 +160,7 @@ def _water_model(text: str | None):
 
 
 def _cmd_render_spectral(a, out, config) -> int:
-    import time
 
-    import jaxvcm
 
     if a.time is not None:
         raise ValueError("--time: not available with --spectral; use --passes N")
@@ -185,8 +187,6 @@ def _cmd_render_spectral(a, out, config) -> int:
 
 
 def _cmd_render(a) -> int:
-    import jaxvcm
-    from ._config import RenderConfig
 
     out = a.out or _default_out(a.scene)
     if os.path.splitext(out)[1].lower() != ".exr":
@@ -227,8 +227,6 @@ def _fmt_vec(v) -> str:
 
 def describe(scene) -> str:
     """A human-readable summary of a loaded scene."""
-    from ._scene import LIGHT_NAMES, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES, PHASE_NAMES
-
     cam = scene.camera
     fov = math.degrees(2 * math.atan(float(cam.tan_half_fov)))
     lines = [
@@ -290,15 +288,12 @@ def describe(scene) -> str:
 
 
 def _cmd_info(a) -> int:
-    import jaxvcm
 
     print(describe(jaxvcm.load_scene(a.scene)))
     return 0
 
 
 def _cmd_export(a) -> int:
-    import jaxvcm
-    from ._io import FORMATS, export_scene
 
     ext = os.path.splitext(a.out)[1].lower()
     if ext not in FORMATS:  # fail before loading the scene
@@ -314,7 +309,6 @@ def _cmd_export(a) -> int:
 
 
 def _cmd_fit(a) -> int:
-    from . import _fit
 
     kw = _fit.load_fit_config(a.config)  # validate everything before any rendering
     out = a.out or os.path.join("out", os.path.splitext(os.path.basename(a.config))[0] or "fit")
