@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
@@ -176,8 +177,8 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
     k = jnp.argmax(change)
     a, b = ts[k], ts[k + 1]
     fa, fb = fs[k], fs[k + 1]
-    side = jnp.zeros((), jnp.int32)  # which end was kept last time (Illinois halving)
-    for _ in range(refine):
+    def illinois(_, c):
+        a, b, fa, fb, side = c  # side: which end was kept last time (Illinois halving)
         denom = fb - fa
         m = jnp.where(denom != 0, (a * fb - b * fa) / jnp.where(denom != 0, denom, 1.0),
                       0.5 * (a + b))
@@ -189,7 +190,11 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
         fb = jnp.where(~left & (side == -1), 0.5 * fb, fb)
         b, fb = jnp.where(left, m, b), jnp.where(left, fm, fb)
         a, fa = jnp.where(left, a, m), jnp.where(left, fa, fm)
-        side = jnp.where(left, 1, -1)
+        return a, b, fa, fb, jnp.where(left, 1, -1).astype(jnp.int32)
+
+    # a rolled loop: one copy of the step in the program (compile time), same arithmetic
+    a, b, fa, fb, _ = jax.lax.fori_loop(0, refine, illinois,
+                                        (a, b, fa, fb, jnp.zeros((), jnp.int32)))
     t = jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b)
     h, hx, hz = water_height(w, o.x + t * d.x, o.z + t * d.z)
     ft = o.y + t * d.y - h
@@ -209,9 +214,10 @@ def inside_water(w: Water, p: Vec3) -> Array:
 
 
 # ---------------------------------------------------------------- scene
-def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16,
-                    any_hit: bool = False) -> Hit:
-    """Closest hit over every shape kind (static dispatch); a miss has t = inf, shape = -1."""
+def closest_t(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16,
+              any_hit: bool = False) -> tuple[Array, Array, Array]:
+    """(t, shape, index) of the closest hit over every shape kind (static dispatch); a miss
+    has t = inf, shape = -1. Shadow rays stop here (`unoccluded`)."""
     dt = o.x.dtype
     t = jnp.asarray(INF, dt)
     shape = jnp.asarray(SHAPE_NONE, jnp.int32)
@@ -236,6 +242,13 @@ def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: i
         t = jnp.where(closer, tw, t)
         shape = jnp.where(closer, SHAPE_WATER, shape)
         index = jnp.where(closer, 0, index)
+    return t, shape, index
+
+
+def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16,
+                    any_hit: bool = False) -> Hit:
+    """Closest hit over every shape kind (static dispatch); a miss has t = inf, shape = -1."""
+    t, shape, index = closest_t(scene, o, d, tmin, tmax, steps, any_hit)
 
     # ---- normal, material, light of the closest hit ----
     tt = jnp.where(jnp.isfinite(t), t, 0.0)
@@ -267,4 +280,4 @@ def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: i
 def unoccluded(scene: Scene, o: Vec3, d: Vec3, tmax, steps: int = 16) -> Array:
     """True if nothing is hit on (0, tmax): the shadow-ray test. Any surface blocks,
     the water surface included (NEE through a delta interface is impossible)."""
-    return ~jnp.isfinite(intersect_scene(scene, o, d, 0.0, tmax, steps, any_hit=True).t)
+    return ~jnp.isfinite(closest_t(scene, o, d, 0.0, tmax, steps, any_hit=True)[0])
