@@ -85,15 +85,29 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
         radius = merge.pass_radius(cfg, scene, pass_index)
     etas = merge.log_etas(radius, N, dt) if tech.merging == "all" else (0.0, 0.0)
 
-    # ---- camera subpaths ----
+    # ---- subpaths: camera and light starts, then one trace (both in one when both run) ----
     pixel = jnp.arange(N, dtype=jnp.int32) % P
     if tech.camera_paths:
         u_cam = jax.random.uniform(kc, (2, N), dt)
         o, d = jax.vmap(camera.generate_ray, in_axes=(None, 0, 0, 0))(cam, pixel, u_cam[0], u_cam[1])
         _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
-        s0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(scene, o, d, jax.lax.stop_gradient(imp))
-        u = jax.random.uniform(kp, (D, N, subpath.N_UNIFORMS), dt)
-        cverts, _ = subpath.trace(scene, cfg, True, s0, u, D)
+        c0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(scene, o, d, jax.lax.stop_gradient(imp))
+        uc = jax.random.uniform(kp, (D, N, subpath.N_UNIFORMS), dt)
+    if tech.light_paths:
+        e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
+            scene, jax.random.uniform(ke, (N, 5), dt))
+        l0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
+        n_steps = max(D - 1, 1)
+        ul = jax.random.uniform(kl, (n_steps, N, subpath.N_UNIFORMS), dt)
+    if tech.camera_paths and tech.light_paths:
+        cverts, (lverts, rev0) = subpath.trace_both(scene, cfg, c0, uc, D, l0, ul, n_steps)
+    elif tech.camera_paths:
+        cverts, _ = subpath.trace(scene, cfg, True, c0, uc, D)
+    else:
+        lverts, rev0 = subpath.trace(scene, cfg, False, l0, ul, n_steps)
+
+    # ---- camera-side techniques ----
+    if tech.camera_paths:
         cends = subpath.camera_ends(scene, o, cverts, N)
         if tech.emitter_hits and tech.merging != "first":  # ppm: in its gather
             out.update(connect.emitter_hits(scene, cfg, cends, cverts, etas))
@@ -101,14 +115,8 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
             u_nee = jax.random.uniform(kn, (D - 1, N, 3), dt)
             out.update(connect.next_event(scene, cfg, cends, u_nee, etas))
         camera_vertices = jnp.sum(cverts.alive)
-    # ---- light subpaths ----
+    # ---- light-side techniques ----
     if tech.light_paths:
-        e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
-            scene, jax.random.uniform(ke, (N, 5), dt))
-        s0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
-        n_steps = max(D - 1, 1)
-        u = jax.random.uniform(kl, (n_steps, N, subpath.N_UNIFORMS), dt)
-        lverts, rev0 = subpath.trace(scene, cfg, False, s0, u, n_steps)
         lends = subpath.light_ends(scene, e, rev0, lverts, N)
         cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)),
                              camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))[0])

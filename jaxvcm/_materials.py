@@ -52,9 +52,10 @@ class BSDFSample(NamedTuple):
     disperse: Array  # a refraction at a dispersive dielectric: channels > 0 terminated
 
 
-def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: bool = True
+def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance=True
                 ) -> BSDFSample:
-    """Sample wi for material `kind` (a traced int selecting among the static kinds)."""
+    """Sample wi for material `kind` (a traced int selecting among the static kinds).
+    `radiance`: the transport mode, a static bool or a traced per-lane flag."""
     cos_o = vec.dot(wo, n)
     side = jnp.where(cos_o >= 0, 1.0, -1.0).astype(n.x.dtype)
     ns = n * side  # normal on wo's side
@@ -79,7 +80,10 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance: 
     wi_t = -wo / eta + ns * (cos_i / eta - cos_t)
     wi_t = vec.normalize(wi_t)
     wi_g = vec.where(refl, wi_m, wi_t)
-    scale_t = 1.0 / (eta * eta) if radiance else 1.0
+    if isinstance(radiance, bool):
+        scale_t = 1.0 / (eta * eta) if radiance else 1.0
+    else:
+        scale_t = jnp.where(radiance, 1.0 / (eta * eta), 1.0)
     if dispersive:
         R_c, _ = fresnel_dielectric(cos_o, jnp.where(cos_o >= 0, ior, 1.0 / ior))
         hero = (jnp.arange(C) == 0).astype(n.x.dtype)

@@ -175,14 +175,17 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     pdf_fwd = jnp.where(s.prev_delta, 1.0, pdf_fwd)
 
     # ---- emission seen by camera paths ----
-    if radiance:
+    if radiance is False:
+        Le = jnp.zeros((C,), dt)
+        v_alive = s.alive & (scatter | surf)
+    else:  # True, or a traced per-lane flag (camera and light lanes in one trace)
         Le_s, _ = lights.emitted_surface(scene, hit.light, wo, n, dist)
         Le_e, _ = lights.emitted_escape(scene, s.d)
         Le = jnp.where(surf, Le_s, jnp.where(esc & ~s.in_water, Le_e, 0.0))
         v_alive = s.alive & (scatter | surf | (esc & ~s.in_water))
-    else:
-        Le = jnp.zeros((C,), dt)
-        v_alive = s.alive & (scatter | surf)
+        if radiance is not True:
+            Le = jnp.where(radiance, Le, 0.0)
+            v_alive = jnp.where(radiance, v_alive, s.alive & (scatter | surf))
     light_id = jnp.where(surf, hit.light, -1)
     p_rec = vec.where(esc, s.d, p)  # escaped: store the direction to the sky
 
@@ -228,10 +231,13 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     return state, vertex
 
 
-def trace(scene: Scene, cfg: RenderConfig, radiance: bool, s0: WalkState, u, n_steps: int
+def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int
           ) -> Vertex:
-    """Trace N subpaths from batched start states; u: [n_steps, N, N_UNIFORMS]."""
-    vstep = jax.vmap(step, in_axes=(None, None, None, None, 0, 0))
+    """Trace N subpaths from batched start states; u: [n_steps, N, N_UNIFORMS].
+    `radiance`: True (camera subpaths), False (light subpaths) or a [N] per-lane flag
+    (`trace_both`)."""
+    static = isinstance(radiance, bool)
+    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, None, 0, 0))
 
     def body(s, x):
         i, ui = x
@@ -243,6 +249,26 @@ def trace(scene: Scene, cfg: RenderConfig, radiance: bool, s0: WalkState, u, n_s
     # vertex's reverse pdf is only ever set by a connection.
     rev_next = jnp.concatenate([verts.pdf_rev[1:], jnp.ones_like(verts.pdf_rev[:1])], axis=0)
     return verts._replace(pdf_rev=rev_next), verts.pdf_rev[0]
+
+
+def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: int,
+               light0: WalkState, u_light, n_light: int):
+    """Camera and light subpaths in one trace (one copy of `step` in the compiled program):
+    the 2N lanes carry their transport mode as a per-lane flag, and each lane computes
+    exactly what its own `trace` would (its uniforms, its mode). The light lanes run
+    n_cam >= n_light steps; their extra steps are discarded. Returns (camera records
+    [n_cam, N], (light records [n_light, N], y_0's reverse pdf))."""
+    N = u_cam.shape[1]
+    pad = jnp.zeros((n_cam - n_light,) + u_light.shape[1:], u_light.dtype)
+    u = jnp.concatenate([u_cam[:n_cam], jnp.concatenate([u_light[:n_light], pad])], axis=1)
+    s0 = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), cam0, light0)
+    mode = jnp.arange(2 * N) < N
+    verts, rev0 = trace(scene, cfg, mode, s0, u, n_cam)
+    cverts = jax.tree.map(lambda a: a[:, :N], verts)
+    lverts = jax.tree.map(lambda a: a[:n_light, N:], verts)
+    # the light records end at n_light: their last reverse pdf is set by a connection
+    lverts = lverts._replace(pdf_rev=lverts.pdf_rev.at[-1].set(1.0))
+    return cverts, (lverts, rev0[N:])
 
 
 def camera_start(scene: Scene, o: Vec3, d: Vec3, pdf_w) -> WalkState:
