@@ -34,9 +34,21 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._config import TECHNIQUES
+
+
+def _sums(x, rel, cols: int):
+    """out[j] = sum_i x[i] [rel(i, j)], j < cols: the prefix / suffix sums of a short
+    per-path vector as one product with a constant 0/1 matrix. (`jnp.cumsum` lowers to a
+    `reduce_window` whose window spans the whole axis: O(L^2) adds per lane on the CPU, the
+    largest cost of a bidirectional pass at depth 16.)"""
+    L = x.shape[0]
+    m = rel(np.arange(L)[:, None], np.arange(cols)[None, :]).astype(np.float32)
+    return jnp.matmul(x, jnp.asarray(m, x.dtype), precision=jax.lax.Precision.HIGHEST)
+
 
 def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L"],
                k: Int[Array, ""], s: Int[Array, ""], delta_light: Bool[Array, ""],
@@ -67,12 +79,11 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
     la = jnp.log(jnp.where(in_path & (a > 0), a, 1.0))
     lb = jnp.log(jnp.where(in_path & (b > 0), b, 1.0))
     # c_j = sum_{i<j} (log a_i - log b_i), j = 0..L
-    c = jnp.concatenate([jnp.zeros((1,), dt), jnp.cumsum(la - lb)])
+    c = _sums(la - lb, lambda i, j: i < j, L + 1)  # c_j = sum_{i<j}, j = 0..L
     j = jnp.arange(L + 1, dtype=jnp.int32)
     # p_j > 0  <=>  a_i > 0 for all i < j  and  b_i > 0 for all k >= i >= j
-    za = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.cumsum(~pos_a).astype(jnp.int32)])
-    zb_suffix = jnp.concatenate([jnp.cumsum((~pos_b)[::-1])[::-1].astype(jnp.int32),
-                                 jnp.zeros((1,), jnp.int32)])
+    za = _sums((~pos_a).astype(dt), lambda i, j: i < j, L + 1)  # zeros among a_i, i < j
+    zb_suffix = _sums((~pos_b).astype(dt), lambda i, j: i >= j, L + 1)  # among b_i, i >= j
     positive = (za == 0) & (zb_suffix == 0)
     # connectability of technique j: x_{j-1} and x_j non-delta (with the end rules)
     dpad = jnp.concatenate([delta & in_path, jnp.zeros((1,), bool)])
@@ -85,7 +96,7 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
     valid = conn & positive & (j <= k + 1) & tech.connection_mask(j, k)
     # non-delta interior vertices strictly between x_i and the camera (for ppm)
     nd = (~delta & in_path & (i >= 1) & (i <= k - 1)).astype(jnp.int32)
-    nd_after = jnp.concatenate([jnp.cumsum(nd[::-1])[::-1][1:], jnp.zeros((1,), jnp.int32)])
+    nd_after = _sums(nd.astype(dt), lambda m, i: m > i, L)  # sum_{m > i} nd_m
     if tech.merging == "first":
         # emitter hits only through a purely delta camera prefix
         valid = valid & (jnp.sum(nd) == 0)
