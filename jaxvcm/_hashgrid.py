@@ -277,7 +277,7 @@ def _unsort(qs: _Queries, a: Array) -> Array:
 def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
                  fn: Callable[[Array, Array, Array], Any], radius: ArrayLike | None = None,
                  *, max_candidates: int | None = None, chunk: int = DEFAULT_CHUNK,
-                 sort_queries: bool = True):
+                 sort_queries: bool = True, return_need: bool = False):
     """Sum over neighbours of a per-pair kernel, without a [Q, K] array.
 
     `fn(qi, pj, d2)` gets [B] arrays (query index into the given queries, point index into
@@ -290,6 +290,8 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
     differentiable; steps past the chunk's longest list are skipped by `lax.cond`);
     `overflow` is set when some query has more candidates (then its sum misses points).
     Choose it from the candidate counts (tests/_hashgrid_oracles.py `candidate_counts`).
+    return_need: also return the longest candidate list of any query (int32), which is the
+    capacity that would have been enough: the host re-runs once with that much room.
     Queries are (optionally, static `sort_queries`) sorted by block, then processed in
     chunks of `chunk` (static) lanes: work ~ sum over chunks of chunk * max candidates.
     """
@@ -299,7 +301,8 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
     shape = jax.eval_shape(fn, probe, probe, probe.astype(dt))
     if grid.points.shape[0] == 0 or n_q == 0:
         out = jax.tree.map(lambda s: jnp.zeros((n_q,) + s.shape[1:], s.dtype), shape)
-        return out, jnp.zeros((), bool)
+        none = (out, jnp.zeros((), bool))
+        return none + (jnp.zeros((), jnp.int32),) if return_need else none
     qs = _prep(grid, qx, qy, qz, radius, chunk, sort_queries)
     r = qs.r
     r2 = r * r
@@ -321,10 +324,13 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
             _, acc = lax.while_loop(lambda s: s[0] < tmax,
                                     lambda s: (s[0] + 1, step(s[0], s[1])),
                                     (jnp.zeros((), jnp.int32), zeros))
-            return acc, jnp.zeros((), bool)
+            return acc, tmax.astype(jnp.int32)
         acc = lax.fori_loop(
             0, cap, lambda t, s: lax.cond(t < tmax, partial(step, t), lambda s: s, s), zeros)
-        return acc, tmax > cap
+        return acc, tmax.astype(jnp.int32)
 
-    acc, over = lax.map(one_chunk, (qs.qi, tuple(qs.q)))
-    return jax.tree.map(partial(_unsort, qs), acc), jnp.any(over)
+    acc, need = lax.map(one_chunk, (qs.qi, tuple(qs.q)))
+    need = jnp.max(need)
+    over = jnp.zeros((), bool) if cap is None else need > cap
+    out = jax.tree.map(partial(_unsort, qs), acc)
+    return (out, over, need) if return_need else (out, over)

@@ -64,6 +64,7 @@ class PassStats(eqx.Module):
     camera_vertices: Int[Array, ""]
     light_vertices: Int[Array, ""]
     merge_overflow: Bool[Array, ""]
+    merge_candidates: Int[Array, ""]  # longest hash-grid candidate list of a gather point
 
 
 def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
@@ -80,7 +81,7 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
     tech = cfg.techniques
     out: dict = {}
     zero = jnp.zeros((), jnp.int32)
-    camera_vertices, light_vertices, overflow = zero, zero, jnp.zeros((), bool)
+    camera_vertices, light_vertices, overflow, need = zero, zero, jnp.zeros((), bool), zero
     if tech.merging is not None:
         radius = merge.pass_radius(cfg, scene, pass_index)
     etas = merge.log_etas(radius, N, dt) if tech.merging == "all" else (0.0, 0.0)
@@ -121,14 +122,14 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
         cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)),
                              camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))[0])
         if tech.merging == "first":
-            out[Technique("gather", 0, 0)], overflow = merge.photon_gather(
+            out[Technique("gather", 0, 0)], overflow, need = merge.photon_gather(
                 scene, cfg, cends, cverts, lends, radius)
         if tech.light_tracing:
             out.update(connect.light_tracing(scene, cfg, lends, e, cam_o, etas))
         if tech.connections:
             out.update(connect.connections(scene, cfg, lends, cends, e, etas))
         if tech.merging == "all" and D >= 2:
-            vm, overflow = merge.vertex_merging(scene, cfg, cends, lends, e, radius)
+            vm, overflow, need = merge.vertex_merging(scene, cfg, cends, lends, e, radius)
             for j in range(vm.shape[0]):
                 out[Technique("merge", 0, j + 2)] = vm[j]  # merging at camera vertex z_{j+1}
         light_vertices = jnp.sum(lverts.alive)
@@ -145,7 +146,7 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
         labels.append(label)
         images.append(img)
     stats = PassStats(camera_vertices.astype(jnp.int32), light_vertices.astype(jnp.int32),
-                      overflow)
+                      overflow, need)
     return TechniqueImages(tuple(labels), jnp.stack(images)), stats
 
 

@@ -100,7 +100,8 @@ def _one_scattering_event(scene: Scene, medium):
 
 def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpath.Vertex,
                   lig: PathEnds, radius):
-    """PPM estimate per camera lane [N, C] and the grid's overflow flag."""
+    """PPM estimate per camera lane [N, C], the grid's overflow flag and the longest
+    candidate list of any gather point (the capacity that would have been enough)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
@@ -149,9 +150,10 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
         f = f * both_dispersed(C, zdisp[qi], pdisp[pj]).astype(f.dtype)
         return jnp.where(ok[:, None], f * pbeta[pj], 0.0)
 
-    total, overflow = hashgrid.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
-                                            _search_radius(radius),
-                                            max_candidates=cfg.merge_capacity)
+    total, overflow, need = hashgrid.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
+                                                  _search_radius(radius),
+                                                  max_candidates=cfg.merge_capacity,
+                                                  return_need=True)
     est = zbeta * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(has[:, None], est, 0.0)
     # ---- emission along the delta prefix and at the gather vertex (weight 1) ----
@@ -159,7 +161,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
     prefix = jj <= jnp.where(has, j, D)[None]
     Le = jnp.sum(jnp.where((prefix & cverts.alive)[..., None], cam.beta[1:] * cverts.Le, 0.0),
                  axis=0)
-    return est + Le, overflow
+    return est + Le, overflow, need
 
 
 # ---------------------------------------------------------------- bpm / vcm: merging with MIS
@@ -168,7 +170,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     (i >= 1) within `radius`, like with like, weighted by the explicit-sum MIS over all
     connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
-    Returns ([N, C] per camera lane, overflow)."""
+    Returns ([N, C] per camera lane, overflow, longest candidate list)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
@@ -225,11 +227,12 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
             log_n, etas[0], etas[1], True)
         return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
 
-    total, overflow = hashgrid.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
-                                            _search_radius(radius),
-                                            max_candidates=cfg.merge_capacity)
+    total, overflow, need = hashgrid.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
+                                                  _search_radius(radius),
+                                                  max_candidates=cfg.merge_capacity,
+                                                  return_need=True)
     zmed = flat(cam.medium, ci)
     est = flat(cam.beta, ci) * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(zvalid[:, None], est, 0.0).reshape(len(ci), N, -1)
-    return est, overflow
+    return est, overflow, need
 

@@ -31,6 +31,7 @@ class Diagnostics(eqx.Module):
     camera_vertices: Int[Array, ""]  # camera subpath vertices that existed
     light_vertices: Int[Array, ""]  # light subpath vertices that existed
     merge_overflow: Array  # the hash-grid gather ran out of candidate capacity (re-run!)
+    merge_candidates: Array  # longest candidate list of a gather point: the room needed
 
 
 def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig(),
@@ -50,6 +51,7 @@ def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderCo
         camera_vertices=stats.camera_vertices,
         light_vertices=stats.light_vertices,
         merge_overflow=stats.merge_overflow,
+        merge_candidates=stats.merge_candidates,
     )
     return img, diag
 
@@ -59,22 +61,29 @@ def _render_pass_jit(scene, key, config, pass_index=0):
     return render_pass(scene, key, config, pass_index)
 
 
-def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overflow_of):
+def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overflow_of,
+               need_of=None):
     """Host side: run `jitted_pass(scene, key, config, pass_index)`; if the merging gather
     overflowed its static capacity (`overflow_of(diagnostics)`), re-run the same pass (same
-    key) with twice the room (jax-md's re-allocation pattern); never truncate. Returns
+    key) with more room (jax-md's re-allocation pattern); never truncate. The room is the
+    power of two that holds the longest candidate list the pass reported (`need_of`), at
+    least twice the old one, so one re-run (one new compiled program) is enough. Returns
     (estimate, diagnostics, the config that had room)."""
     while True:
         est, diag = jitted_pass(scene, key, config, pass_index)
-        if not bool(overflow_of(diag)):
+        if not bool(np.any(overflow_of(diag))):
             return est, diag, config
-        config = dataclasses.replace(config, merge_capacity=2 * config.merge_capacity)
+        cap = 2 * config.merge_capacity
+        if need_of is not None:
+            need = int(np.max(np.asarray(need_of(diag))))
+            cap = max(cap, 1 << max(need - 1, 1).bit_length())
+        config = dataclasses.replace(config, merge_capacity=cap)
 
 
 def render_pass_host(scene, key, config, pass_index=0):
     """`render_pass` (jitted) with the merge-capacity re-run of `with_retry`."""
     return with_retry(_render_pass_jit, scene, key, config, pass_index,
-                      lambda d: d.merge_overflow)
+                      lambda d: d.merge_overflow, lambda d: d.merge_candidates)
 
 
 def pass_key(seed: int, index: int) -> PRNGKeyArray:

@@ -36,7 +36,8 @@ K = 64
 build = jax.jit(HG.build, static_argnames=("table_size", "dtype"))
 query = jax.jit(HO.query, static_argnames=("max_neighbours", "chunk", "sort_queries"))
 reduce_ = jax.jit(HG.query_reduce,
-                  static_argnames=("fn", "max_candidates", "chunk", "sort_queries"))
+                  static_argnames=("fn", "max_candidates", "chunk", "sort_queries",
+                                   "return_need"))
 
 
 # ------------------------------------------------------------------------------ oracle
@@ -297,6 +298,10 @@ def test_query_reduce_sums_and_overflow(max_candidates):
         np.testing.assert_allclose(acc, s, rtol=1e-12, atol=1e-12)
     else:  # the longest lists were cut short: counts are lower bounds
         assert np.all(np.asarray(ones) <= [len(x) for x in ref])
+    # the room that would have been enough is reported whatever the capacity (the host
+    # re-runs once with it): the longest candidate list of the oracle
+    _, overflow2, reported = reduce_(grid, *Q, fn, max_candidates=cap, return_need=True)
+    assert int(reported) == need and bool(overflow2) == bool(overflow)
 
 
 def test_query_reduce_gradient():

@@ -76,6 +76,12 @@ def test_merge_overflow_flag_and_host_rerun_is_exact():
     assert bool(diag_s.merge_overflow)  # far more than 2 candidates per gather point
     img_h, diag_h, used = render_pass_host(sc, key, small, 0)
     assert not bool(diag_h.merge_overflow) and used.merge_capacity > 2
+    # one re-run: the first pass reported the room it needed (its longest candidate
+    # list), and the host chose the power of two that holds it; the same key sees the
+    # same candidates
+    need = int(diag_s.merge_candidates)
+    assert need > 2 and used.merge_capacity == 1 << (need - 1).bit_length()
+    assert int(diag_h.merge_candidates) == need
     big = dataclasses.replace(small, merge_capacity=used.merge_capacity * 4)
     img_b, diag_b = _render_pass_jit(sc, key, big, 0)
     assert not bool(diag_b.merge_overflow)

@@ -93,7 +93,8 @@ def render_spectral(spectral: SpectralScene, passes: int | None = 16, seed: int 
     def run_pass(i):
         xyz, diag, state["config"] = with_retry(render_pass_spectral_jit, spectral,
                                                 pass_key(seed, i), state["config"], i,
-                                                lambda d: d.core.merge_overflow)
+                                                lambda d: d.core.merge_overflow,
+                                                lambda d: d.core.merge_candidates)
         return xyz, diag.core.nonfinite
 
     def meta(n, seconds, nonfinite, snapshot):
