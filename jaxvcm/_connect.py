@@ -7,9 +7,11 @@ Techniques (s light vertices, t camera vertices, path x_0 .. x_k with k = s + t 
     s, t >= 2      camera vertex z_{t-1} joined to light vertex y_{s-1} of the light
                    subpath with the same index (one light subpath per pixel sample).
 Each technique evaluates its contribution and the pdfs the join changes, and takes its
-MIS weight from the full-path assembly (`_path.py`). Each family is vectorised over its
-techniques J and the N paths: arrays are [J, N]; one compiled kernel serves every
-technique of a family whatever the maximum depth.
+MIS weight from the subpaths' partial sums and its join (`_path.family_join_weights`; the
+`parts` argument: (light, camera) `_mis_partial.Partials`), or from the full-path
+assembly (`_path.family_weights`) when `parts` is None (the recursive form, ppm). Each
+family is vectorised over its techniques J and the N paths: arrays are [J, N]; one
+compiled kernel serves every technique of a family whatever the maximum depth.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from . import _subpath as subpath
 from . import _vec as vec
 from ._camera import camera_importance
 from ._config import RenderConfig
-from ._path import Pdfs, both_dispersed, family_weights, log_n_light_tracing, pdfs, reverse_pdf
+from ._path import (Pdfs, both_dispersed, camera_partials, family_join_weights, family_weights,
+                    light_partials, log_n_light_tracing, pdfs, reverse_pdf)
 from ._scene import LIGHT_SKY, LIGHT_SUN, Scene
 from ._subpath import PathEnds, rows
 from ._vec import Vec3
@@ -89,9 +92,16 @@ def _sky_id(scene: Scene) -> int:
     return 0
 
 
+def _no_light(cfg, N, dt, etas):
+    """Light partials standing in for an empty light subpath (s = 0 reads none of it)."""
+    one = jnp.ones((1, N), dt)
+    f = jnp.zeros((1, N), bool)
+    return light_partials(cfg, Pdfs(one, one, one, f, f), jnp.zeros((N,), bool), etas)
+
+
 # ---------------------------------------------------------------- s = 0
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
-                 etas=(0.0, 0.0)):
+                 etas=(0.0, 0.0), parts=None):
     """z_j on an emitter or at infinity (sky), j = 1..D: technique (0, j + 1)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -109,16 +119,21 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.
     c_inf = jnp.where(zp.medium, 1.0, jnp.abs(vec.dot(zp.n, z.p)))
     A_s1 = jnp.where(esc, pe * c_inf, a_area)
     one = jnp.ones((D, N), dt)
-    w = family_weights(cfg, np.zeros(D), js + 1, pdfs(cam), (None, 1), pdfs(cam), (None, 1),
-                       A_s, A_s1, one, one, jnp.zeros((), bool), esc,
-                       log_n_light_tracing(cfg, N, dt), etas)
+    log_n = log_n_light_tracing(cfg, N, dt)
+    if parts is None:
+        w = family_weights(cfg, np.zeros(D), js + 1, pdfs(cam), (None, 1), pdfs(cam), (None, 1),
+                           A_s, A_s1, one, one, jnp.zeros((), bool), esc, log_n, etas)
+    else:  # s = 0: no light vertex (an empty light side)
+        w = family_join_weights(cfg, np.zeros(D), js + 1, _no_light(cfg, N, dt, etas), parts[1],
+                                A_s, A_s1, one, one, jnp.zeros((), bool), esc, log_n)
     ok = z.alive & jnp.any(Le > 0, axis=-1)
     contrib = jnp.where(ok[..., None], z.beta * Le * w[..., None], 0.0)
     return {(0, int(j) + 1): contrib[i] for i, j in enumerate(js)}
 
 
 # ---------------------------------------------------------------- s = 1
-def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0, 0.0)):
+def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0, 0.0),
+               parts=None):
     """NEE from z_j, j = 1..D-1: technique (1, j + 1)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -157,8 +172,15 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
     f1 = jnp.zeros((J, N, 1), bool)
     lig = Pdfs(A0[..., None], B0[..., None], jnp.ones((J, N, 1), dt), f1, f1)
     one = jnp.ones((J, N), dt)
-    w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), pdfs(cam), (None, 1),
-                       A_s, A_s1, B0, one, is_delta_l, inf, log_n_light_tracing(cfg, N, dt), etas)
+    log_n = log_n_light_tracing(cfg, N, dt)
+    if parts is None:
+        w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), pdfs(cam), (None, 1),
+                           A_s, A_s1, B0, one, is_delta_l, inf, log_n, etas)
+    else:  # the light sample's own one-vertex partials, fields [..., J, N]
+        per_j = jax.vmap(lambda p, dl: light_partials(cfg, Pdfs(*(a.T for a in p)), dl, etas),
+                         out_axes=-2)
+        w = family_join_weights(cfg, np.ones(J), js + 1, per_j(lig, is_delta_l), parts[1],
+                                A_s, A_s1, B0, one, is_delta_l, inf, log_n, lanes_of_L=False)
     ok = z.alive & ~z.delta & ls.valid & vis
     contrib = jnp.where(ok[..., None], contrib * w[..., None], 0.0)
     return {(1, int(j) + 1): contrib[i] for i, j in enumerate(js)}
@@ -166,7 +188,7 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
 
 # ---------------------------------------------------------------- t = 1
 def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission, cam_o: Vec3,
-                  etas=(0.0, 0.0)):
+                  etas=(0.0, 0.0), parts=None):
     """y_i -> pinhole, i = 0..D-1: technique (i + 1, 1), splatted: {(s, 1): (pixel, value)}."""
     N = lig.A.shape[1]
     D = cfg.max_depth
@@ -196,9 +218,14 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     one = jnp.ones((J, N), dt)
     N0 = jnp.ones((1, N), dt)
     camp = Pdfs(N0, N0, N0, jnp.zeros((1, N), bool), jnp.zeros((1, N), bool))  # z_0 alone
-    wgt = family_weights(cfg, idx + 1, np.ones(J), pdfs(lig), (None, 1), camp, (None, 1),
-                         one, one, B_s1, B_s2, e.delta[None], e.infinite[None],
-                         log_n_light_tracing(cfg, N, dt), etas)
+    log_n = log_n_light_tracing(cfg, N, dt)
+    if parts is None:
+        wgt = family_weights(cfg, idx + 1, np.ones(J), pdfs(lig), (None, 1), camp, (None, 1),
+                             one, one, B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
+    else:
+        wgt = family_join_weights(cfg, idx + 1, np.ones(J), parts[0],
+                                  camera_partials(cfg, camp, log_n, etas), one, one, B_s1, B_s2,
+                                  e.delta[None], e.infinite[None], log_n)
     good = ok & vis & inside
     val = jnp.where(good[..., None], contrib * wgt[..., None], 0.0)
     return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
@@ -206,7 +233,7 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
 
 # ---------------------------------------------------------------- s, t >= 2
 def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e: lights.Emission,
-                etas=(0.0, 0.0)):
+                etas=(0.0, 0.0), parts=None):
     """z_{t-1} joined to y_{s-1} for s, t >= 2, s + t - 1 <= D."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -231,9 +258,13 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     b, p4 = _reverse(scene)(y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
                             y.seg_water)
     B_s2 = jnp.where(((ss - 2) == 0)[:, None] & e.infinite[None], p4, b)
-    wgt = family_weights(cfg, ss, ts, pdfs(lig), (None, 1), pdfs(cam), (None, 1), A_s, A_s1,
-                         B_s1, B_s2, e.delta[None], e.infinite[None], log_n_light_tracing(cfg, N, dt),
-                         etas)
+    log_n = log_n_light_tracing(cfg, N, dt)
+    if parts is None:
+        wgt = family_weights(cfg, ss, ts, pdfs(lig), (None, 1), pdfs(cam), (None, 1), A_s, A_s1,
+                             B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
+    else:
+        wgt = family_join_weights(cfg, ss, ts, parts[0], parts[1], A_s, A_s1, B_s1, B_s2,
+                                  e.delta[None], e.infinite[None], log_n)
     ok = y.alive & ~y.delta & z.alive & ~z.delta & vis
     val = jnp.where(ok[..., None], contrib * wgt[..., None], 0.0)
     return {pr: val[i] for i, pr in enumerate(pairs)}

@@ -24,6 +24,7 @@ from . import _camera as camera
 from . import _connect as connect
 from . import _lights as lights
 from . import _merge as merge
+from . import _path as path
 from . import _subpath as subpath
 from ._config import RenderConfig
 from ._scene import Scene
@@ -107,29 +108,44 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
     else:
         lverts, rev0 = subpath.trace(scene, cfg, False, l0, ul, n_steps)
 
-    # ---- camera-side techniques ----
+    # ---- MIS partial sums of each subpath (O(D) per subpath, then O(1) per technique) ----
+    joins = path.joins_partials(cfg)
+    cparts = lparts = None
+    log_n = path.log_n_light_tracing(cfg, N, dt)
     if tech.camera_paths:
         cends = subpath.camera_ends(scene, o, cverts, N)
+    if tech.light_paths:
+        lends = subpath.light_ends(scene, e, rev0, lverts, N)
+    if joins and tech.camera_paths and tech.light_paths:
+        lparts, cparts = path.both_partials(cfg, path.pdfs(lends), path.pdfs(cends), e.delta,
+                                            log_n, etas)
+    elif joins and tech.camera_paths:
+        cparts = path.camera_partials(cfg, path.pdfs(cends), log_n, etas)
+    elif joins:
+        lparts = path.light_partials(cfg, path.pdfs(lends), e.delta, etas)
+    parts = (lparts, cparts) if joins else None
+
+    # ---- camera-side techniques ----
+    if tech.camera_paths:
         if tech.emitter_hits and tech.merging != "first":  # ppm: in its gather
-            out.update(connect.emitter_hits(scene, cfg, cends, cverts, etas))
+            out.update(connect.emitter_hits(scene, cfg, cends, cverts, etas, parts))
         if D >= 2 and tech.nee:
             u_nee = jax.random.uniform(kn, (D - 1, N, 3), dt)
-            out.update(connect.next_event(scene, cfg, cends, u_nee, etas))
+            out.update(connect.next_event(scene, cfg, cends, u_nee, etas, parts))
         camera_vertices = jnp.sum(cverts.alive)
     # ---- light-side techniques ----
     if tech.light_paths:
-        lends = subpath.light_ends(scene, e, rev0, lverts, N)
         cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)),
                              camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))[0])
         if tech.merging == "first":
             out[Technique("gather", 0, 0)], overflow, need = merge.photon_gather(
                 scene, cfg, cends, cverts, lends, radius)
         if tech.light_tracing:
-            out.update(connect.light_tracing(scene, cfg, lends, e, cam_o, etas))
+            out.update(connect.light_tracing(scene, cfg, lends, e, cam_o, etas, parts))
         if tech.connections:
-            out.update(connect.connections(scene, cfg, lends, cends, e, etas))
+            out.update(connect.connections(scene, cfg, lends, cends, e, etas, parts))
         if tech.merging == "all" and D >= 2:
-            vm, overflow, need = merge.vertex_merging(scene, cfg, cends, lends, e, radius)
+            vm, overflow, need = merge.vertex_merging(scene, cfg, cends, lends, e, radius, parts)
             for j in range(vm.shape[0]):
                 out[Technique("merge", 0, j + 2)] = vm[j]  # merging at camera vertex z_{j+1}
         light_vertices = jnp.sum(lverts.alive)

@@ -32,6 +32,7 @@ from . import _hashgrid as hashgrid
 from . import _subpath as subpath
 from . import _vec as vec
 from ._config import RenderConfig
+from . import _mis_partial
 from ._path import both_dispersed, log_n_light_tracing, pdfs, reverse_pdf, weight
 from ._scene import Scene, bounding_sphere
 from ._subpath import PathEnds
@@ -165,11 +166,14 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
 
 
 # ---------------------------------------------------------------- bpm / vcm: merging with MIS
-def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds, e, radius):
+def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds, e, radius,
+                   parts=None):
     """Merging at every non-delta camera vertex z_j (j = 1..D-1) with every photon y_i
     (i >= 1) within `radius`, like with like, weighted by the explicit-sum MIS over all
     connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
+    `parts`: the subpaths' (light, camera) MIS partials (`_mis_partial`): each candidate
+    then gathers O(1) entries; None: each assembles its full path (`_path.weight`).
     Returns ([N, C] per camera lane, overflow, longest candidate list)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -219,12 +223,21 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
         b1, pb1 = rev(z.kind, z.mat, z.n, z.p, z.wo, y.wo, yp.p, yp.medium, yp.n, y.seg_water)
         B_s1 = jnp.where((ip == 1) & e.infinite[ll], pb1, b1)
         B_s2 = lig_pdfs.B[jnp.maximum(ip - 2, 0), ll]
-        lig_l = jax.tree.map(lambda a: a[:, ll].T, lig_pdfs)
-        cam_l = jax.tree.map(lambda a: a[:, lc].T, cam_pdfs)
-        w = jax.vmap(weight, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None, None,
-                                         None))(
-            cfg, ip, jq + 1, lig_l, cam_l, y.A, A_s1, B_s1, B_s2, e.delta[ll], e.infinite[ll],
-            log_n, etas[0], etas[1], True)
+        if parts is None:
+            lig_l = jax.tree.map(lambda a: a[:, ll].T, lig_pdfs)
+            cam_l = jax.tree.map(lambda a: a[:, lc].T, cam_pdfs)
+            w = jax.vmap(weight, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None,
+                                          None, None))(
+                cfg, ip, jq + 1, lig_l, cam_l, y.A, A_s1, B_s1, B_s2, e.delta[ll],
+                e.infinite[ll], log_n, etas[0], etas[1], True)
+        else:
+            sg = jax.lax.stop_gradient
+            w = jax.vmap(lambda s_, t_, a_s, a_s1, b_s1, b_s2, dl, inf, l_, c_:
+                         _mis_partial.join_weight(cfg, s_, t_, parts[0], parts[1], a_s, a_s1,
+                                                  b_s1, b_s2, dl, inf, sg(log_n), merge=True,
+                                                  lanes=(l_, c_)))(
+                ip, jq + 1, sg(y.A), sg(A_s1), sg(B_s1), sg(B_s2), e.delta[ll], e.infinite[ll],
+                ll, lc)
         return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
 
     total, overflow, need = hashgrid.query_reduce(grid, zq.x, zq.y, zq.z, kernel,

@@ -7,7 +7,9 @@ the stored subpaths, except the four the join changes (pbrt's `MISWeight`):
     A(z_{t-1}), A(z_{t-2})  light-side pdfs of the two camera vertices nearest the join,
     B(y_{s-1}), B(y_{s-2})  camera-side pdfs of the two light vertices nearest the join.
 `weight` hands the assembled arrays to the explicit sums (`_mis.py`) or to the recursive
-form (`_mis_recursive.py`) by `RenderConfig.mis_form`.
+form (`_mis_recursive.py`). The renderer's explicit form does not assemble: each subpath's
+partial sums are built once (`light_partials`, `camera_partials`) and each technique adds
+its join (`_mis_partial.py`, `family_join_weights`); `joins_partials(cfg)` says which.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from . import _mis, _mis_recursive
+from . import _mis, _mis_partial, _mis_recursive
 from . import _subpath as subpath
 from ._config import RenderConfig
 from ._subpath import PathEnds
@@ -125,3 +127,76 @@ def family_weights(cfg, s, t, lig: Pdfs, lig_axis, cam: Pdfs, cam_axis, A_s, A_s
     return outer(cfg, jnp.asarray(s, jnp.int32), jnp.asarray(t, jnp.int32), lig, cam, A_s,
                  bc(A_s1), bc(B_s1), bc(B_s2), bc(delta_light), bc(infinite_light), log_n_lt,
                  etas[0], etas[1])
+
+
+# ---------------------------------------------------------------- O(1) per technique
+def joins_partials(cfg: RenderConfig) -> bool:
+    """The renderer weights by per-subpath partial sums (`_mis_partial.py`): the explicit
+    form, except for ppm (merging at the first non-delta camera vertex only)."""
+    return cfg.mis_form == "explicit" and cfg.techniques.merging != "first"
+
+
+def light_partials(cfg: RenderConfig, lig: Pdfs, delta_light, etas=(0.0, 0.0)):
+    """`_mis_partial.Partials` of light subpaths: lig fields [M, N] -> fields [..., N]."""
+    f = jax.vmap(_mis_partial.light, in_axes=(None, 1, 1, 1, 1, 1, 0, None), out_axes=-1)
+    sg = jax.lax.stop_gradient
+    return f(cfg, sg(lig.A), sg(lig.B), sg(lig.q), lig.delta, lig.medium,
+             jnp.broadcast_to(delta_light, lig.A.shape[1:]), sg(etas))
+
+
+def camera_partials(cfg: RenderConfig, cam: Pdfs, log_n_lt, etas=(0.0, 0.0)):
+    """`_mis_partial.Partials` of camera subpaths: cam fields [M, N] -> fields [..., N]."""
+    f = jax.vmap(_mis_partial.camera, in_axes=(None, 1, 1, 1, 1, 1, None, None), out_axes=-1)
+    sg = jax.lax.stop_gradient
+    return f(cfg, sg(cam.A), sg(cam.B), sg(cam.q), cam.delta, cam.medium, sg(log_n_lt), sg(etas))
+
+
+def both_partials(cfg: RenderConfig, lig: Pdfs, cam: Pdfs, delta_light, log_n_lt,
+                  etas=(0.0, 0.0)):
+    """(light, camera) partials in one call over both subpaths' lanes (one copy of the
+    builder in the compiled program): the light subpaths [M_l, N] are padded to the camera
+    subpaths' length [M_c, N] (the padding is never read)."""
+    Ml, N = lig.A.shape
+    Mc = cam.A.shape[0]
+    sg = jax.lax.stop_gradient
+
+    def cat(a, b, fill):
+        pad = jnp.full((Mc - Ml, N), fill, a.dtype)
+        return jnp.concatenate([jnp.concatenate([a, pad]), b], axis=1)
+
+    f = jax.vmap(_mis_partial.subpath, in_axes=(None, 1, 1, 1, 1, 1, 0, 0, None, None),
+                 out_axes=-1)
+    P = f(cfg, sg(cat(lig.A, cam.A, 1)), sg(cat(lig.B, cam.B, 1)), sg(cat(lig.q, cam.q, 1)),
+          cat(lig.delta, cam.delta, False), cat(lig.medium, cam.medium, False),
+          jnp.arange(2 * N) >= N,
+          jnp.concatenate([jnp.broadcast_to(delta_light, (N,)), jnp.zeros((N,), bool)]),
+          sg(log_n_lt), sg(etas))
+    return (jax.tree.map(lambda a: a[..., :N], P), jax.tree.map(lambda a: a[..., N:], P))
+
+
+def family_join_weights(cfg: RenderConfig, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
+                        infinite_light, log_n_lt, lanes_of_L=True):
+    """Weights [J, N] of a family of connection techniques by `_mis_partial.join_weight`:
+    s, t [J] (static); overrides [J, N]; C: camera partials with fields [..., N]; L: light
+    partials with fields [..., N], or with fields [..., J, N] when `lanes_of_L` is False
+    (one light subpath per technique and lane: next-event estimation's light sample)."""
+    J, N = A_s.shape
+    sg = jax.lax.stop_gradient
+    bc = lambda x: jnp.broadcast_to(sg(x), (J, N))  # noqa: E731
+    args = (jnp.asarray(s, jnp.int32), jnp.asarray(t, jnp.int32), A_s, bc(A_s1), bc(B_s1),
+            bc(B_s2), bc(delta_light), bc(infinite_light),
+            jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32), (J, N)))
+    log_n = sg(log_n_lt)
+    if lanes_of_L:  # every technique gathers its entries from the shared partials
+        def one(s_, t_, a_s, a_s1, b_s1, b_s2, dl, inf, n):
+            return _mis_partial.join_weight(cfg, s_, t_, L, C, a_s, a_s1, b_s1, b_s2, dl, inf,
+                                            log_n, lanes=(n, n))
+        f = jax.vmap(jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0)))
+        return sg(f(*args))
+
+    def own(Lj, s_, t_, a_s, a_s1, b_s1, b_s2, dl, inf, n):  # Lj: this lane's light partials
+        return _mis_partial.join_weight(cfg, s_, t_, Lj, C, a_s, a_s1, b_s1, b_s2, dl, inf,
+                                        log_n, lanes=(None, n))
+    inner = jax.vmap(own, in_axes=(-1, None, None, 0, 0, 0, 0, 0, 0, 0))
+    f = jax.vmap(inner, in_axes=(-2, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+    return sg(f(L, *args))

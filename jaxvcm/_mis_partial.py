@@ -1,0 +1,268 @@
+"""The explicit MIS sums of `_mis.py`, evaluated at the join: O(D) per subpath, O(1) per
+technique.
+
+`_mis.mis_weight` assembles the whole path x_0..x_k for every technique of every lane and
+sums over all of its techniques: O(D) gathers and O(D^2) adds per technique. The sums
+split at the join. With c_j = sum_{i<j} (log a_i - log b_i) (`_mis.py`), every term of
+technique s's denominator relative to the connection technique s is, in log space,
+    connection j < s:  sum_{i=j}^{s-1} d_i,               d_i = log b_i - log a_i,
+    merge at i < s:    log b_i + log eta_i + sum_{m=i+1}^{s-1} d_m,
+    connection j > s:  log n_j + sum_{i=s}^{j-1} e_i,     e_i = log a_i - log b_i,
+    merge at i >= s:   log a_i + log eta_i + sum_{m=s}^{i-1} e_m,
+(each times beta), so the light side's log-sum obeys S(p+1) = u_p (+) (d_p + S(p)) and the
+camera side's T(p) = u_p (+) (e_p + T(p+1)) ((+) = logaddexp; u_p the terms that start
+at x_p: the tech report's dVCM/dVC/dVM recursion, here in log space). Only the pdfs next
+to the join depend on the technique: b_{s-1}, b_{s-2} and a_s, a_{s+1} (re-evaluated by
+the join, `_path.py`), and the Russian roulette of each direction, which counts from the
+generating end: b_i (light vertex) carries q_{i+1} iff k - i - 1 >= rr_depth, so on the
+light side the last rr_depth - t - 1 vertices before those two lack it (t: camera
+vertices), and symmetrically a_i on the camera side with s. Each subpath therefore keeps,
+per vertex position m and per "other side length" variant, the log-sum over the vertices
+before the two join vertices (`Partials.table`, built once per subpath by the recursion
+with q and at most rr_depth - 1 steps without it), and a technique adds its two join
+vertices on each side, its own term, and one log-sum-exp. Same weights as `_mis.py` to
+float32 round-off (tests/test_mis_partial.py compares them on random subpaths); ppm
+(merging only at the first non-delta camera vertex) keeps the assembled form.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ._config import RenderConfig
+
+NEG = -jnp.inf
+
+
+def _lae(*xs):
+    out = xs[0]
+    for x in xs[1:]:
+        out = jnp.logaddexp(out, x)
+    return out
+
+
+def _log_pos(x, zero):
+    """log x, with `zero` where x <= 0."""
+    return jnp.where(x > 0, jnp.log(jnp.where(x > 0, x, 1.0)), zero)
+
+
+def _rr(index, q, rr_depth):
+    return jnp.where(index >= rr_depth, q, 1.0)
+
+
+def variants(cfg: RenderConfig, M: int) -> tuple[int, int]:
+    """(lowest other-side length o_lo, number of variants) of a subpath with M vertices: a
+    variant with other-side length o has min(max(rr_depth - o - 1, 0), M) vertices without
+    roulette before the join vertices; o <= rr_depth - 1 - M all have M, o >= rr_depth - 1
+    none."""
+    hi = cfg.rr_depth - 1
+    lo = max(0, hi - M)
+    return lo, hi - lo + 1
+
+
+def variant_index(cfg: RenderConfig, M: int, other):
+    lo, V = variants(cfg, M)
+    return jnp.clip(other, lo, lo + V - 1) - lo
+
+
+class Partials(NamedTuple):
+    """One subpath's share of the MIS sums, per lane (built by `light` or `camera`).
+
+    table: [V, M+1] log-sum over the techniques that start at the first m vertices
+           (light: x_0..x_{m-1}; camera: z_0..z_{m-1}), carried to vertex m, per variant;
+    lp:    [M] log of the local pdf with its own roulette (light: a_i; camera: b_i); a zero
+           pdf is logged as 0 and flagged in `zero`;
+    zero:  [M+1] a zero local pdf among the first m vertices (the technique is impossible);
+    vc:    [M] the connection technique that starts at the vertex is enabled and
+           connectable (light x_i: technique i; camera z_c: technique k - c + 1);
+    vm:    [M] merging at the vertex is enabled (non-delta, not the subpath's first);
+    q, delta, leta: [M] local roulette survival, delta flag, log(kernel N) at the vertex.
+    """
+
+    table: Array
+    lp: Array
+    zero: Array
+    vc: Array
+    vm: Array
+    q: Array
+    delta: Array
+    leta: Array
+
+
+def _tables(cfg, M, u_q, d_q, u_1, d_1, bad):
+    """Per variant, log-sums S[m] (m = 0..M) of S(p+1) = u_p (+) (d_p + S(p)), S(0) = -inf,
+    with (u_1, d_1) (no roulette) for the last z vertices before m and (u_q, d_q) before;
+    and zero[m]: `bad` among the first m vertices."""
+    def step(carry, x):
+        S, z = carry
+        u, d, b = x
+        S, z = jnp.logaddexp(u, d + S), z | b
+        return (S, z), (S, z)
+
+    init = (jnp.full((), NEG, d_q.dtype), jnp.zeros((), bool))
+    lo, V = variants(cfg, M)
+    z = np.array([min(max(cfg.rr_depth - o - 1, 0), M) for o in range(lo, lo + V)])[:, None]
+    if M == 1:  # a lone start vertex (next-event estimation's light sample, the pinhole)
+        S1 = jnp.where(z[:, 0] >= 1, u_1[0], u_q[0])
+        return (jnp.stack([jnp.full((V,), NEG, d_q.dtype), S1], axis=1),
+                jnp.stack([init[1], bad[0]]))
+    _, (S, zero) = jax.lax.scan(step, init, (u_q, d_q, bad))
+    Sq = jnp.concatenate([init[0][None], S])
+    zero = jnp.concatenate([init[1][None], zero])
+    m = np.arange(M + 1)[None, :]
+    cur = Sq[np.maximum(m - z, 0)]  # [V, M+1]: the roulette part, then z steps without it
+    for r in range(int(z.max())):
+        p = m - z + r
+        pc = np.clip(p, 0, M - 1)
+        cur = jnp.where((r < z) & (p >= 0), jnp.logaddexp(u_1[pc], d_1[pc] + cur), cur)
+    return cur, zero
+
+
+def subpath(cfg: RenderConfig, A, B, q, delta, medium, camera_side, delta_light=False,
+            log_n_lt=0.0, etas=(0.0, 0.0)) -> Partials:
+    """Partials of one subpath (one lane: A, B, q, delta, medium [M]): a light subpath
+    y_0..y_{M-1} (`camera_side` False) or a camera subpath z_0..z_{M-1} (True; z_0 the
+    pinhole); `camera_side` may be a traced flag (light and camera lanes in one call).
+    The pdfs the join re-evaluates (B of a light subpath's, A of a camera subpath's last
+    two vertices) are never read.
+
+    The local pdf (light a_i, camera b_c) carries the subpath's own roulette (index from
+    its start); the other one (light b_i, camera a_i) the roulette of the other direction,
+    q of the next vertex along the subpath, with (`_q`) or without (`_1`) it."""
+    tech = cfg.techniques
+    beta = 2.0 if cfg.mis == "power" else 1.0
+    M = A.shape[0]
+    dt = A.dtype
+    delta_light = jnp.asarray(delta_light, bool)
+    i = np.arange(M)
+    q_prev = jnp.concatenate([jnp.ones((1,), dt), q[:-1]])
+    q_next = jnp.concatenate([q[1:], jnp.ones((1,), dt)])
+    own = jnp.where(camera_side, B, A)
+    other = jnp.where(camera_side, A, B)
+    local = own * jnp.where(i >= 1, _rr(i - 1, q_prev, cfg.rr_depth), 1.0)
+    lp = _log_pos(local, 0.0)
+    leta = jnp.where(medium, etas[1], etas[0]).astype(dt)
+    d_prev = jnp.concatenate([jnp.zeros((1,), bool), delta[:-1]])
+    # the connection technique that starts at the vertex: light x_i starts technique i
+    # (x_{i-1} - x_i; i = 0 the emitter hit, i = 1 next-event estimation); camera z_c
+    # starts technique k - c + 1 (z_c - z_{c-1}; c = 1 light tracing, c = 0 none)
+    vc_light = jnp.where(i == 0, tech.emitter_hits & ~delta_light,
+                         jnp.where(i == 1, tech.nee, tech.connections) & ~delta
+                         & ((i == 1) | ~d_prev))
+    vc_camera = jnp.where(i == 0, False,
+                          jnp.where(i == 1, tech.light_tracing & ~delta,
+                                    tech.connections & ~delta & ~d_prev))
+    vc = jnp.where(camera_side, vc_camera, vc_light)
+    ln = jnp.where(camera_side & (i == 1), log_n_lt, 0.0).astype(dt)
+    vm = jnp.asarray(tech.merging == "all") & (i >= 1) & ~delta
+
+    def terms(lo):  # u: the techniques that start at the vertex; d: the step to the next
+        d = beta * (lo - lp)
+        u = jnp.logaddexp(jnp.where(vc, d + beta * ln, NEG), jnp.where(vm, beta * (lo + leta), NEG))
+        return u, d
+
+    table, zero = _tables(cfg, M, *terms(_log_pos(other * q_next, NEG)),
+                          *terms(_log_pos(other, NEG)), ~(local > 0))
+    return Partials(table, lp, zero, vc, vm, q, delta, leta)
+
+
+def light(cfg: RenderConfig, A, B, q, delta, medium, delta_light, etas=(0.0, 0.0)) -> Partials:
+    """Partials of a light subpath y_0..y_{M-1} (one lane)."""
+    return subpath(cfg, A, B, q, delta, medium, False, delta_light, 0.0, etas)
+
+
+def camera(cfg: RenderConfig, A, B, q, delta, medium, log_n_lt, etas=(0.0, 0.0)) -> Partials:
+    """Partials of a camera subpath z_0..z_{M-1} (one lane)."""
+    return subpath(cfg, A, B, q, delta, medium, True, False, log_n_lt, etas)
+
+
+def _row(P: Partials, i, lane):
+    """Vertex i of a subpath (may be out of range: `ok` is then False); `lane`: index of
+    the trailing lane axis of every field, or None (fields of one lane)."""
+    M = P.lp.shape[0]
+    ic = jnp.clip(i, 0, M - 1)
+    ok = (i >= 0) & (i < M)
+    g = (lambda a: a[ic]) if lane is None else (lambda a: a[ic, lane])  # noqa: E731
+    return ok, g(P.lp), g(P.vc) & ok, g(P.vm) & ok, g(P.q), g(P.delta), g(P.leta)
+
+
+def _at(a, idx, lane):
+    return a[idx] if lane is None else a[idx + (lane,)]
+
+
+def join_weight(cfg: RenderConfig, s, t, L: Partials, C: Partials, A_s, A_s1, B_s1, B_s2,
+                delta_light, infinite_light, log_n_lt, merge=False, lanes=(None, None)):
+    """MIS weight of technique (s, t) for one lane, from the two subpaths' partials and the
+    four pdfs the join re-evaluates (`_path.path_pdfs`: A_s = a(x_s), A_s1 = a(x_{s+1}) if
+    t >= 3, B_s1 = b(x_{s-1}), B_s2 = b(x_{s-2})); log_n_lt: log of light tracing's
+    multiplicity; `merge`: merging at x_s = z_{t-1} (A_s is then the photon's pdf).
+    Equal to `_path.weight` with mis_form "explicit"."""
+    tech = cfg.techniques
+    beta = 2.0 if cfg.mis == "power" else 1.0
+    R = cfg.rr_depth
+    s = jnp.asarray(s, jnp.int32)
+    t = jnp.asarray(t, jnp.int32)
+    k = s + t - 1
+    dt = L.lp.dtype
+    ll, lc = lanes
+    ok1, la1, vc1, vm1, q_y, dl1, le1 = _row(L, s - 1, ll)  # x_{s-1}
+    ok2, la2, vc2, vm2, _, _, le2 = _row(L, s - 2, ll)  # x_{s-2}
+    _, lbc, vcc, vmc, q_z, dz, lez = _row(C, t - 1, lc)  # x_s = z_{t-1}
+    okp, lbp, vcp, vmp, _, dzp, lep = _row(C, t - 2, lc)  # x_{s+1} = z_{t-2}
+    lnp = jnp.where(t == 3, log_n_lt, 0.0)  # connection s + 2 is light tracing iff t = 3
+    q_y = jnp.where(ok1, q_y, 1.0)
+
+    # ---- light side: b_{s-1}, b_{s-2} re-evaluated, roulette counted from the camera ----
+    lb1 = _log_pos(B_s1 * _rr(t - 1, q_z, R), NEG)
+    lb2 = _log_pos(B_s2 * _rr(t, q_y, R), NEG)
+    d1 = jnp.where(ok1, beta * (lb1 - la1), 0.0)
+    d2 = jnp.where(ok2, beta * (lb2 - la2), 0.0)
+    u1 = jnp.logaddexp(jnp.where(vc1, d1, NEG), jnp.where(vm1, beta * (lb1 + le1), NEG))
+    u2 = jnp.logaddexp(jnp.where(vc2, d2, NEG), jnp.where(vm2, beta * (lb2 + le2), NEG))
+    ML = L.lp.shape[0]
+    TL = _at(L.table, (variant_index(cfg, ML, t), jnp.clip(s - 2, 0, ML)), ll)
+    SL = _lae(u1, d1 + u2, d1 + d2 + TL)
+
+    # ---- camera side: a_s, a_{s+1} re-evaluated, roulette counted from the light ----
+    la_s = _log_pos(A_s * jnp.where(s >= 1, _rr(s - 1, q_y, R), 1.0), NEG)
+    la_s1 = _log_pos(jnp.where(t >= 3, A_s1, 1.0) * _rr(s, q_z, R), NEG)
+    e1 = beta * (la_s - lbc)
+    e2 = jnp.where(okp, beta * (la_s1 - lbp), 0.0)
+    # connection s + 1 joins x_s and x_{s+1}; for s = 0 it is next-event estimation (or
+    # light tracing if k = 1: the pinhole is x_1), whose x_0 needs no connectability
+    vc_s1 = jnp.where(s == 0,
+                      jnp.where(k == 1, tech.light_tracing & ~infinite_light, tech.nee & ~dzp),
+                      vcc)
+    ln_s1 = jnp.where(t == 2, log_n_lt, 0.0)  # connection s + 1 is light tracing iff t = 2
+    vm_s = vmc & (s >= 1)
+    uc1 = jnp.logaddexp(jnp.where(vc_s1, e1 + beta * ln_s1, NEG),
+                        jnp.where(vm_s, beta * (la_s + lez), NEG))
+    uc2 = jnp.logaddexp(jnp.where(vcp, e2 + beta * lnp, NEG),
+                        jnp.where(vmp, beta * (la_s1 + lep), NEG))
+    MC = C.lp.shape[0]
+    TC = _at(C.table, (variant_index(cfg, MC, s), jnp.clip(t - 2, 0, MC)), lc)
+    SC = _lae(uc1, e1 + uc2, e1 + e2 + TC)
+
+    # ---- the connection technique s itself (x_{s-1} - x_s) ----
+    positive = ~_at(L.zero, (jnp.clip(s, 0, ML),), ll) & ~_at(C.zero, (jnp.clip(t, 0, MC),), lc)
+    conn = jnp.where(s == 0, tech.emitter_hits & ~delta_light,
+                     jnp.where(t == 1, tech.light_tracing & ((s == 1) | ~dl1)
+                               & ~((k == 1) & infinite_light),
+                               jnp.where(s == 1, tech.nee & ~dz,
+                                         tech.connections & ~dl1 & ~dz)))
+    conn = conn & positive
+    ln_s = jnp.where(t == 1, log_n_lt, 0.0)  # n_s = N for light tracing
+    own_conn = jnp.where(conn, beta * ln_s, NEG)
+    if merge:
+        own = beta * (la_s + lez)
+        own_ok = vm_s & positive & (k >= s + 1) & jnp.isfinite(la_s)
+    else:
+        own, own_ok = own_conn, conn
+    total = _lae(own_conn, SL, SC)
+    w = jnp.exp(own - total)
+    return jnp.where(own_ok, w, jnp.zeros((), dt))
