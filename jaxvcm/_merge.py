@@ -232,12 +232,10 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
                 e.infinite[ll], log_n, etas[0], etas[1], True)
         else:
             sg = jax.lax.stop_gradient
-            w = jax.vmap(lambda s_, t_, a_s, a_s1, b_s1, b_s2, dl, inf, l_, c_:
-                         _mis_partial.join_weight(cfg, s_, t_, parts[0], parts[1], a_s, a_s1,
-                                                  b_s1, b_s2, dl, inf, sg(log_n), merge=True,
-                                                  lanes=(l_, c_)))(
-                ip, jq + 1, sg(y.A), sg(A_s1), sg(B_s1), sg(B_s2), e.delta[ll], e.infinite[ll],
-                ll, lc)
+            w = _mis_partial.join_weight(cfg, ip, jq + 1, parts[0], parts[1], sg(y.A),
+                                         sg(A_s1), sg(B_s1), sg(B_s2), e.delta[ll],
+                                         e.infinite[ll], sg(log_n), merge=True,
+                                         lanes=((ll,), (lc,)))
         return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
 
     total, overflow, need = hashgrid.query_reduce(grid, zq.x, zq.y, zq.z, kernel,

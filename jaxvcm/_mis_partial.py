@@ -181,88 +181,118 @@ def camera(cfg: RenderConfig, A, B, q, delta, medium, log_n_lt, etas=(0.0, 0.0))
     return subpath(cfg, A, B, q, delta, medium, True, False, log_n_lt, etas)
 
 
-def _row(P: Partials, i, lane):
-    """Vertex i of a subpath (may be out of range: `ok` is then False); `lane`: index of
-    the trailing lane axis of every field, or None (fields of one lane)."""
+class Entries(NamedTuple):
+    """What a technique reads from one side's partials: the two vertices next to the join
+    (1: adjacent, 2: the one before), the table entry before them, the zero flag."""
+
+    ok1: Array
+    lp1: Array
+    vc1: Array
+    vm1: Array
+    q1: Array
+    delta1: Array
+    leta1: Array
+    ok2: Array
+    lp2: Array
+    vc2: Array
+    vm2: Array
+    delta2: Array
+    leta2: Array
+    table: Array
+    zero: Array
+
+
+def entries(cfg: RenderConfig, P: Partials, n, other, index=()) -> Entries:
+    """The entries of a side with n vertices in the technique (light: s, camera: t) whose
+    other side has `other` vertices. Indices may be numpy arrays (a family of techniques:
+    static slices of fields [M, ...]), traced (one technique per lane) or mixed; `index`:
+    indices of the fields' trailing axes (e.g. the lane of each technique)."""
     M = P.lp.shape[0]
-    ic = jnp.clip(i, 0, M - 1)
-    ok = (i >= 0) & (i < M)
-    g = (lambda a: a[ic]) if lane is None else (lambda a: a[ic, lane])  # noqa: E731
-    return ok, g(P.lp), g(P.vc) & ok, g(P.vm) & ok, g(P.q), g(P.delta), g(P.leta)
+    xp = np if isinstance(n, (int, np.ndarray)) else jnp
+    V = variants(cfg, M)
 
+    def row(i):
+        ic = xp.clip(i, 0, M - 1)
+        ok = (i >= 0) & (i < M)
+        lead = P.lp[(ic,) + index].ndim - np.ndim(ok)  # trailing lane axes of a family
+        return ok.reshape(np.shape(ok) + (1,) * lead), lambda a: a[(ic,) + index]
 
-def _at(a, idx, lane):
-    return a[idx] if lane is None else a[idx + (lane,)]
+    ok1, g1 = row(n - 1)
+    ok2, g2 = row(n - 2)
+    v = xp.clip(other, V[0], V[0] + V[1] - 1) - V[0]
+    return Entries(ok1, g1(P.lp), g1(P.vc) & ok1, g1(P.vm) & ok1, g1(P.q), g1(P.delta),
+                   g1(P.leta), ok2, g2(P.lp), g2(P.vc) & ok2, g2(P.vm) & ok2, g2(P.delta),
+                   g2(P.leta), P.table[(v, xp.clip(n - 2, 0, M)) + index],
+                   P.zero[(xp.clip(n, 0, M),) + index])
 
 
 def join_weight(cfg: RenderConfig, s, t, L: Partials, C: Partials, A_s, A_s1, B_s1, B_s2,
-                delta_light, infinite_light, log_n_lt, merge=False, lanes=(None, None)):
-    """MIS weight of technique (s, t) for one lane, from the two subpaths' partials and the
-    four pdfs the join re-evaluates (`_path.path_pdfs`: A_s = a(x_s), A_s1 = a(x_{s+1}) if
-    t >= 3, B_s1 = b(x_{s-1}), B_s2 = b(x_{s-2})); log_n_lt: log of light tracing's
-    multiplicity; `merge`: merging at x_s = z_{t-1} (A_s is then the photon's pdf).
-    Equal to `_path.weight` with mis_form "explicit"."""
+                delta_light, infinite_light, log_n_lt, merge=False, lanes=((), ())):
+    """MIS weight of technique (s, t) for one lane (`lanes`: each side's trailing-axis
+    indices, see `entries`), from the two subpaths' partials and the four pdfs the join
+    re-evaluates (`_path.path_pdfs`: A_s = a(x_s), A_s1 = a(x_{s+1}) if t >= 3,
+    B_s1 = b(x_{s-1}), B_s2 = b(x_{s-2})); log_n_lt: log of light tracing's multiplicity;
+    `merge`: merging at x_s = z_{t-1} (A_s is then the photon's pdf). Equal to
+    `_path.weight` with mis_form "explicit"."""
+    return join(cfg, s, t, entries(cfg, L, s, t, lanes[0]), entries(cfg, C, t, s, lanes[1]),
+                A_s, A_s1, B_s1, B_s2, delta_light, infinite_light, log_n_lt, merge)
+
+
+def join(cfg: RenderConfig, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s2,
+         delta_light, infinite_light, log_n_lt, merge=False):
+    """`join_weight` from the entries of both sides: elementwise, any batch shape (s, t
+    broadcast against the pdfs)."""
     tech = cfg.techniques
     beta = 2.0 if cfg.mis == "power" else 1.0
     R = cfg.rr_depth
-    s = jnp.asarray(s, jnp.int32)
-    t = jnp.asarray(t, jnp.int32)
     k = s + t - 1
-    dt = L.lp.dtype
-    ll, lc = lanes
-    ok1, la1, vc1, vm1, q_y, dl1, le1 = _row(L, s - 1, ll)  # x_{s-1}
-    ok2, la2, vc2, vm2, _, _, le2 = _row(L, s - 2, ll)  # x_{s-2}
-    _, lbc, vcc, vmc, q_z, dz, lez = _row(C, t - 1, lc)  # x_s = z_{t-1}
-    okp, lbp, vcp, vmp, _, dzp, lep = _row(C, t - 2, lc)  # x_{s+1} = z_{t-2}
-    lnp = jnp.where(t == 3, log_n_lt, 0.0)  # connection s + 2 is light tracing iff t = 3
-    q_y = jnp.where(ok1, q_y, 1.0)
+    dt = Le.lp1.dtype
+    q_y = jnp.where(Le.ok1, Le.q1, 1.0)  # x_{s-1}
+    q_z = Ce.q1  # x_s = z_{t-1}
 
     # ---- light side: b_{s-1}, b_{s-2} re-evaluated, roulette counted from the camera ----
     lb1 = _log_pos(B_s1 * _rr(t - 1, q_z, R), NEG)
     lb2 = _log_pos(B_s2 * _rr(t, q_y, R), NEG)
-    d1 = jnp.where(ok1, beta * (lb1 - la1), 0.0)
-    d2 = jnp.where(ok2, beta * (lb2 - la2), 0.0)
-    u1 = jnp.logaddexp(jnp.where(vc1, d1, NEG), jnp.where(vm1, beta * (lb1 + le1), NEG))
-    u2 = jnp.logaddexp(jnp.where(vc2, d2, NEG), jnp.where(vm2, beta * (lb2 + le2), NEG))
-    ML = L.lp.shape[0]
-    TL = _at(L.table, (variant_index(cfg, ML, t), jnp.clip(s - 2, 0, ML)), ll)
-    SL = _lae(u1, d1 + u2, d1 + d2 + TL)
+    d1 = jnp.where(Le.ok1, beta * (lb1 - Le.lp1), 0.0)
+    d2 = jnp.where(Le.ok2, beta * (lb2 - Le.lp2), 0.0)
+    u1 = jnp.logaddexp(jnp.where(Le.vc1, d1, NEG), jnp.where(Le.vm1, beta * (lb1 + Le.leta1), NEG))
+    u2 = jnp.logaddexp(jnp.where(Le.vc2, d2, NEG), jnp.where(Le.vm2, beta * (lb2 + Le.leta2), NEG))
+    SL = _lae(u1, d1 + u2, d1 + d2 + Le.table)
 
     # ---- camera side: a_s, a_{s+1} re-evaluated, roulette counted from the light ----
     la_s = _log_pos(A_s * jnp.where(s >= 1, _rr(s - 1, q_y, R), 1.0), NEG)
     la_s1 = _log_pos(jnp.where(t >= 3, A_s1, 1.0) * _rr(s, q_z, R), NEG)
-    e1 = beta * (la_s - lbc)
-    e2 = jnp.where(okp, beta * (la_s1 - lbp), 0.0)
+    e1 = beta * (la_s - Ce.lp1)
+    e2 = jnp.where(Ce.ok2, beta * (la_s1 - Ce.lp2), 0.0)
     # connection s + 1 joins x_s and x_{s+1}; for s = 0 it is next-event estimation (or
     # light tracing if k = 1: the pinhole is x_1), whose x_0 needs no connectability
     vc_s1 = jnp.where(s == 0,
-                      jnp.where(k == 1, tech.light_tracing & ~infinite_light, tech.nee & ~dzp),
-                      vcc)
+                      jnp.where(k == 1, tech.light_tracing & ~infinite_light,
+                                tech.nee & ~Ce.delta2),
+                      Ce.vc1)
     ln_s1 = jnp.where(t == 2, log_n_lt, 0.0)  # connection s + 1 is light tracing iff t = 2
-    vm_s = vmc & (s >= 1)
+    ln_s2 = jnp.where(t == 3, log_n_lt, 0.0)  # connection s + 2 is light tracing iff t = 3
+    vm_s = Ce.vm1 & (s >= 1)
     uc1 = jnp.logaddexp(jnp.where(vc_s1, e1 + beta * ln_s1, NEG),
-                        jnp.where(vm_s, beta * (la_s + lez), NEG))
-    uc2 = jnp.logaddexp(jnp.where(vcp, e2 + beta * lnp, NEG),
-                        jnp.where(vmp, beta * (la_s1 + lep), NEG))
-    MC = C.lp.shape[0]
-    TC = _at(C.table, (variant_index(cfg, MC, s), jnp.clip(t - 2, 0, MC)), lc)
-    SC = _lae(uc1, e1 + uc2, e1 + e2 + TC)
+                        jnp.where(vm_s, beta * (la_s + Ce.leta1), NEG))
+    uc2 = jnp.logaddexp(jnp.where(Ce.vc2, e2 + beta * ln_s2, NEG),
+                        jnp.where(Ce.vm2, beta * (la_s1 + Ce.leta2), NEG))
+    SC = _lae(uc1, e1 + uc2, e1 + e2 + Ce.table)
 
     # ---- the connection technique s itself (x_{s-1} - x_s) ----
-    positive = ~_at(L.zero, (jnp.clip(s, 0, ML),), ll) & ~_at(C.zero, (jnp.clip(t, 0, MC),), lc)
+    positive = ~Le.zero & ~Ce.zero
     conn = jnp.where(s == 0, tech.emitter_hits & ~delta_light,
-                     jnp.where(t == 1, tech.light_tracing & ((s == 1) | ~dl1)
+                     jnp.where(t == 1, tech.light_tracing & ((s == 1) | ~Le.delta1)
                                & ~((k == 1) & infinite_light),
-                               jnp.where(s == 1, tech.nee & ~dz,
-                                         tech.connections & ~dl1 & ~dz)))
+                               jnp.where(s == 1, tech.nee & ~Ce.delta1,
+                                         tech.connections & ~Le.delta1 & ~Ce.delta1)))
     conn = conn & positive
     ln_s = jnp.where(t == 1, log_n_lt, 0.0)  # n_s = N for light tracing
     own_conn = jnp.where(conn, beta * ln_s, NEG)
     if merge:
-        own = beta * (la_s + lez)
-        own_ok = vm_s & positive & (k >= s + 1) & jnp.isfinite(la_s)
+        own = beta * (la_s + Ce.leta1)
+        own_ok = vm_s & positive & (t >= 2) & jnp.isfinite(la_s)
     else:
         own, own_ok = own_conn, conn
     total = _lae(own_conn, SL, SC)
-    w = jnp.exp(own - total)
-    return jnp.where(own_ok, w, jnp.zeros((), dt))
+    return jnp.where(own_ok, jnp.exp(own - total), jnp.zeros((), dt))

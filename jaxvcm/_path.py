@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from . import _mis, _mis_partial, _mis_recursive
@@ -176,27 +177,17 @@ def both_partials(cfg: RenderConfig, lig: Pdfs, cam: Pdfs, delta_light, log_n_lt
 
 def family_join_weights(cfg: RenderConfig, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
                         infinite_light, log_n_lt, lanes_of_L=True):
-    """Weights [J, N] of a family of connection techniques by `_mis_partial.join_weight`:
-    s, t [J] (static); overrides [J, N]; C: camera partials with fields [..., N]; L: light
-    partials with fields [..., N], or with fields [..., J, N] when `lanes_of_L` is False
-    (one light subpath per technique and lane: next-event estimation's light sample)."""
-    J, N = A_s.shape
+    """Weights [J, N] of a family of connection techniques by `_mis_partial.join`: s, t [J]
+    (static: each technique's entries are static slices of the partials); overrides
+    [J, N]; C: camera partials with fields [..., N]; L: light partials with fields
+    [..., N], or [..., J, N] when `lanes_of_L` is False (one light subpath per technique
+    and lane: next-event estimation's light sample)."""
+    s = np.asarray(s, np.int32)
+    t = np.asarray(t, np.int32)
+    J = s.shape[0]
     sg = jax.lax.stop_gradient
-    bc = lambda x: jnp.broadcast_to(sg(x), (J, N))  # noqa: E731
-    args = (jnp.asarray(s, jnp.int32), jnp.asarray(t, jnp.int32), A_s, bc(A_s1), bc(B_s1),
-            bc(B_s2), bc(delta_light), bc(infinite_light),
-            jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32), (J, N)))
-    log_n = sg(log_n_lt)
-    if lanes_of_L:  # every technique gathers its entries from the shared partials
-        def one(s_, t_, a_s, a_s1, b_s1, b_s2, dl, inf, n):
-            return _mis_partial.join_weight(cfg, s_, t_, L, C, a_s, a_s1, b_s1, b_s2, dl, inf,
-                                            log_n, lanes=(n, n))
-        f = jax.vmap(jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0, 0, 0, 0)))
-        return sg(f(*args))
-
-    def own(Lj, s_, t_, a_s, a_s1, b_s1, b_s2, dl, inf, n):  # Lj: this lane's light partials
-        return _mis_partial.join_weight(cfg, s_, t_, Lj, C, a_s, a_s1, b_s1, b_s2, dl, inf,
-                                        log_n, lanes=(None, n))
-    inner = jax.vmap(own, in_axes=(-1, None, None, 0, 0, 0, 0, 0, 0, 0))
-    f = jax.vmap(inner, in_axes=(-2, 0, 0, 0, 0, 0, 0, 0, 0, 0))
-    return sg(f(L, *args))
+    Le = _mis_partial.entries(cfg, L, s, t, () if lanes_of_L else (np.arange(J),))
+    Ce = _mis_partial.entries(cfg, C, t, s)
+    w = _mis_partial.join(cfg, s[:, None], t[:, None], Le, Ce, sg(A_s), sg(A_s1), sg(B_s1),
+                          sg(B_s2), delta_light, infinite_light, sg(log_n_lt))
+    return sg(w)
