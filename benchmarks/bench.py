@@ -20,6 +20,12 @@ independent.
 `--compare-mis` (explicit vs recursive MIS seconds per pass) and `--equal-time SEC`
 (equal-time image grid) are the vertex-merging modes of `benchmarks/vertex_merging.py`;
 `--dispersion` (spectral dispersion modes) is in `benchmarks/spectral.py`.
+
+`--profile`: seconds per stage of one pass (`jaxvcm.profile_stages`: camera rays, light
+emission, subpaths, MIS partials, each technique, merging, film; each stage its own
+compiled program) against the whole single-jit pass, one table per scene (stages x
+algorithms), median over `--throughput-passes` passes; written into the "Stage profile"
+section of `--out` (replaced in place or appended) and `<out stem>_stage-profile.json`.
 """
 
 from __future__ import annotations
@@ -59,6 +65,14 @@ TARGET_CPUS = 2
 REF_SEED_OFFSET = 1_000_003  # reference seed = seed + offset: independent samples
 MAX_SEED = 2**30
 REL_EPS = 0.01  # relMAE denominator offset
+PROFILE_DEFAULT_SCENES = ("pool.toml",)
+PROFILE_DEFAULT_ALGORITHMS = ("pt", "bdpt", "vcm")
+PROFILE_DEFAULT_SIZE = 256
+PROFILE_TAG = "stage-profile"
+# row order of the profile tables (`jaxvcm.profile_stages` names; others go before the sums)
+PROFILE_STAGES = ("setup", "camera rays", "light emission", "subpaths", "mis partials",
+                  "emitter hits", "next-event estimation", "light tracing", "connections",
+                  "merging", "film")
 _TAG_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
 _SECTION_RE = re.compile(
     r"<!-- bench:(?P<tag>[A-Za-z0-9_.+-]+):begin -->\n?(?P<body>.*?)"
@@ -176,6 +190,16 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"timed pairs of passes of --compare-mis (default "
                    f"{_vm.MIS_DEFAULT_PAIRS}), rounds of --dispersion (default "
                    f"{_sp.DEFAULT_ROUNDS})")
+    g = p.add_argument_group(
+        "stage profile (writes the 'Stage profile' section of --out, replaced in place or "
+        "appended, and <out stem>_stage-profile.json; --scenes, --algorithms, --size, "
+        "--full-size, --max-depth, --seed and --throughput-passes apply, --quick only sets "
+        "size 32)")
+    g.add_argument("--profile", action="store_true",
+                   help="median seconds per stage of one pass (each stage compiled on its "
+                   "own) and of the whole pass, over --throughput-passes passes (defaults: "
+                   f"scene {', '.join(PROFILE_DEFAULT_SCENES)}, algorithms "
+                   f"{' '.join(PROFILE_DEFAULT_ALGORITHMS)}, size {PROFILE_DEFAULT_SIZE})")
     return p
 
 
@@ -660,20 +684,94 @@ def _publish(out: Path, tag: str, res: dict, log) -> None:
             log(f"plot -> {png}")
 
 
+# ----------------------------------------------------------------------------- stage profile
+def run_profile(a, argv, log) -> dict:
+    """`jaxvcm.profile_stages` for every (scene, algorithm); the markdown section and the
+    JSON sidecar; prints the section."""
+    res = {"machine": C.machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
+           "max_depth": a.max_depth, "passes": a.throughput_passes, "seed": a.seed,
+           "algorithms": a.algorithms, "scenes": []}
+    for path in a.scene_paths:
+        size = {} if a.full_size else {"width": a.size, "height": a.size}
+        scene = jaxvcm.load_scene(path, **size)
+        w, h = scene.camera.width, scene.camera.height
+        row = {"scene": path.stem, "width": w, "height": h, "seconds": {}}
+        for alg in a.algorithms:
+            cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            log(f"profile: {path.stem} {alg} {w}x{h} d{a.max_depth}: compiling every stage, "
+                f"then {a.throughput_passes} passes")
+            t0 = time.perf_counter()
+            prof = jaxvcm.profile_stages(scene, cfg, passes=a.throughput_passes, seed=a.seed)
+            row["seconds"][alg] = prof
+            log(f"  {time.perf_counter() - t0:.1f} s in all; whole pass "
+                f"{prof['whole pass']:.4f} s")
+        res["scenes"].append(row)
+    body = profile_markdown(res, C.machine_line(res["machine"]))
+    C.upsert_section(a.out, PROFILE_TAG, body)
+    C.write_json(a.out.with_name(f"{a.out.stem}_{PROFILE_TAG}.json"), res)
+    print(body)
+    log(f"report -> {a.out}")
+    return res
+
+
+def _stage_rows(per_alg: dict) -> list[str]:
+    names = list(dict.fromkeys(n for prof in per_alg.values() for n in prof
+                               if n != "whole pass"))
+    rank = {n: i for i, n in enumerate(PROFILE_STAGES)}
+    return sorted(names, key=lambda n: rank.get(n, len(rank)))
+
+
+def profile_markdown(res: dict, machine_line: str) -> str:
+    algs = res["algorithms"]
+    L = ["## Stage profile", "",
+         f"- {machine_line}",
+         f"- command: `{res['command']}`",
+         f"- max depth {res['max_depth']}, seed {res['seed']}; median wall seconds over "
+         f"{res['passes']} passes (keys `pass_key(seed, i)`) of `jaxvcm.profile_stages`: "
+         "each stage of the pass (`technique_images`) jitted on its own, its inputs "
+         "computed by the earlier stages and waited for before its clock starts, every "
+         "program compiled and run once before timing. *whole pass*: the usual single-jit "
+         "pass on the same keys. Separate programs cannot fuse across stages, so their sum "
+         "is usually more than the whole pass. `subpaths` is the trace (camera and light "
+         "subpaths in one trace when both run) with the records' start vertices; `merging` "
+         "is the hash-grid build plus the gather (ppm: photon gather); `–`: the algorithm "
+         "has no such stage.", ""]
+    for row in res["scenes"]:
+        per = row["seconds"]
+        L += [f"### {row['scene']}, {row['width']}x{row['height']}", "",
+              "| stage | " + " | ".join(algs) + " |", "|---|" + "---|" * len(algs)]
+        for name in _stage_rows(per):
+            L.append(f"| {name} | " + " | ".join(
+                f"{per[a][name]:.4f}" if name in per[a] else "–" for a in algs) + " |")
+        sums = [sum(v for n, v in per[a].items() if n != "whole pass") for a in algs]
+        L.append("| sum of stages | " + " | ".join(f"{x:.4f}" for x in sums) + " |")
+        L.append("| **whole pass** | " + " | ".join(
+            f"**{per[a]['whole pass']:.4f}**" for a in algs) + " |")
+        L.append("")
+    return "\n".join(L)
+
+
 # ----------------------------------------------------------------------------- main
 def _settings(argv):
     a = _parser().parse_args(argv)
     a.mode = ("compare-mis" if a.compare_mis else "equal-time" if a.equal_time
               else "dispersion" if a.dispersion else None)
+    if a.profile:
+        if a.mode:
+            raise _Usage(f"--profile: not allowed with --{a.mode}")
+        a.mode = "profile"
+        if a.throughput_passes < 1:
+            raise _Usage("--throughput-passes: --profile needs at least 1")
     if a.mis_pairs is None:
         a.mis_pairs = _sp.DEFAULT_ROUNDS if a.mode == "dispersion" else _vm.MIS_DEFAULT_PAIRS
-    if a.mode and a.full_size:
+    if a.mode not in (None, "profile") and a.full_size:
         raise _Usage(f"--full-size: not available with --{a.mode}")
     if a.mode and a.throughput_only:
         raise _Usage(f"--throughput-only: not available with --{a.mode}")
     mode_algs = {"compare-mis": _vm.MIS_DEFAULT_ALGORITHMS,
                  "equal-time": _vm.ET_DEFAULT_ALGORITHMS,
-                 "dispersion": list(_sp.DEFAULT_ALGORITHMS)}.get(a.mode, ["pt"])
+                 "dispersion": list(_sp.DEFAULT_ALGORITHMS),
+                 "profile": list(PROFILE_DEFAULT_ALGORITHMS)}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
         if alg not in jaxvcm.ALGORITHMS:
@@ -682,7 +780,8 @@ def _settings(argv):
     root = repo_root()
     mode_scenes = {"compare-mis": _vm.MIS_DEFAULT_SCENES,
                    "equal-time": _vm.ET_DEFAULT_SCENES,
-                   "dispersion": _sp.DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
+                   "dispersion": _sp.DEFAULT_SCENES,
+                   "profile": PROFILE_DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
     names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
                                                      for s in mode_scenes]
     a.scene_paths = [_resolve_scene(s) for s in names]
@@ -695,7 +794,8 @@ def _settings(argv):
         a.size = (QUICK_SIZE if a.quick else
                   {"compare-mis": _vm.MIS_DEFAULT_SIZE,
                    "equal-time": _vm.ET_DEFAULT_SIZE,
-                   "dispersion": _sp.DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
+                   "dispersion": _sp.DEFAULT_SIZE,
+                   "profile": PROFILE_DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
     if a.max_depth is None:
         a.max_depth = 8
     if a.reference_time is None and a.reference_passes is None:
@@ -787,6 +887,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "dispersion":
             _sp.run_dispersion(a, argv, C.Log(a.quiet))
+            return 0
+        if a.mode == "profile":
+            run_profile(a, argv, C.Log(a.quiet))
             return 0
         res = run(a, argv)
     except (ValueError, OSError) as e:  # e.g. a malformed scene file: one line, status 2

@@ -18,6 +18,7 @@ from ._scene import Scene as Scene
 from ._integrator import PassStats as PassStats
 from ._integrator import Technique as Technique
 from ._integrator import TechniqueImages as TechniqueImages
+from ._integrator import profile_stages as profile_stages
 from ._integrator import technique_images as technique_images
 from ._mis import mis_weight as mis_weight
 from ._mis_recursive import mis_weight_recursive as mis_weight_recursive

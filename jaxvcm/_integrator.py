@@ -4,20 +4,28 @@ ppm photon gathering at the first non-delta camera vertex; bpm merging at every 
 vertex plus emitter hits; vcm all connections and all merges), each weighted by MIS over
 the techniques that algorithm has.
 
-Stages, in a straight line:
-    camera rays -> camera subpaths -> [s = 0] emitter hits -> [s = 1] next-event estimation
-    light emission -> light subpaths -> [t = 1] light tracing splats -> [s, t >= 2] connections
-    -> [merging] hash grid over light vertices, gather at camera vertices (ppm / bpm / vcm)
-    -> film: every technique's image, summed with non-finite contributions counted
+The pass is a straight line of named stages `stage(scene, cfg, state) -> state` over a
+`PassState` (`pass_stages(cfg)` lists the ones the algorithm runs):
+    setup (keys, merging radius) -> camera rays -> light emission -> subpaths (one trace of
+    both when both run) -> mis partials -> [s = 0] emitter hits -> [s = 1] next-event
+    estimation -> [t = 1] light tracing splats -> [s, t >= 2] connections -> [merging] hash
+    grid over light vertices, gather at camera vertices (ppm / bpm / vcm) -> film: every
+    technique's image
+`technique_images` composes them inside the caller's jit; `profile_stages` jits and times
+each on its own.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import dataclasses
+import functools
+import time
+from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from . import _camera as camera
@@ -68,102 +76,249 @@ class PassStats(eqx.Module):
     merge_candidates: Int[Array, ""]  # longest hash-grid candidate list of a gather point
 
 
-def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
-                     ) -> tuple[TechniqueImages, PassStats]:
-    """Every technique's weighted image of one pass (`Technique` labels), and its stats.
-    `pass_index` drives the merging radius schedule."""
+class PassState(eqx.Module):
+    """What the stages of one pass have produced so far (None: not yet, or not run).
+    A pytree: `profile_stages` passes it from one jitted stage to the next."""
+
+    key: PRNGKeyArray
+    pass_index: Any
+    keys: Any = None  # [5]: camera rays, camera paths, next-event, emission, light paths
+    radius: Any = None  # `_merge.Radii` of this pass (merging algorithms)
+    etas: Any = None  # log eta_VCM (surface, medium) when every camera vertex merges
+    origins: Any = None  # camera ray origins [N]
+    cam_start: Any = None  # camera subpaths' start states and uniforms (until the trace)
+    cam_u: Any = None
+    emission: Any = None  # `_lights.Emission` [N]
+    light_start: Any = None  # light subpaths' start states and uniforms (until the trace)
+    light_u: Any = None
+    cverts: Any = None  # camera subpath records [D, N]
+    lverts: Any = None  # light subpath records [max(D - 1, 1), N]
+    cends: Any = None  # `_subpath.PathEnds`: records with their start vertex
+    lends: Any = None
+    parts: Any = None  # (light, camera) MIS partial sums, or None
+    labels: tuple[Technique, ...] = eqx.field(static=True, default=())
+    values: tuple = ()  # per label: [N, C] per camera path, or a (pixel, value) splat
+    overflow: Any = None  # merging gather ran out of candidate room
+    need: Any = None  # longest candidate list of a gather point
+    images: Any = None  # film: `TechniqueImages` and `PassStats`
+    stats: Any = None
+
+    @property
+    def mis_etas(self):
+        return (0.0, 0.0) if self.etas is None else self.etas
+
+
+Stage = Callable[[Scene, RenderConfig, PassState], PassState]
+
+
+def _dims(scene: Scene, cfg: RenderConfig):
+    """(pixels P, paths N, max depth D, dtype)."""
     cam = scene.camera
-    H, W, C = cam.height, cam.width, scene.channels
-    P = H * W
-    N = P * cfg.spp
-    D = cfg.max_depth
-    dt = cam.origin.dtype
-    kc, kp, kn, ke, kl = jax.random.split(key, 5)
-    tech = cfg.techniques
-    out: dict = {}
-    zero = jnp.zeros((), jnp.int32)
-    camera_vertices, light_vertices, overflow, need = zero, zero, jnp.zeros((), bool), zero
-    if tech.merging is not None:
-        radius = merge.pass_radius(cfg, scene, pass_index)
-    etas = merge.log_etas(radius, N, dt) if tech.merging == "all" else (0.0, 0.0)
+    P = cam.height * cam.width
+    return P, P * cfg.spp, cfg.max_depth, cam.origin.dtype
 
-    # ---- subpaths: camera and light starts, then one trace (both in one when both run) ----
-    pixel = jnp.arange(N, dtype=jnp.int32) % P
-    if tech.camera_paths:
-        u_cam = jax.random.uniform(kc, (2, N), dt)
-        o, d = jax.vmap(camera.generate_ray, in_axes=(None, 0, 0, 0))(cam, pixel, u_cam[0], u_cam[1])
-        _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
-        c0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(scene, o, d, jax.lax.stop_gradient(imp))
-        uc = jax.random.uniform(kp, (D, N, subpath.N_UNIFORMS), dt)
-    if tech.light_paths:
-        e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
-            scene, jax.random.uniform(ke, (N, 5), dt))
-        l0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
-        n_steps = max(D - 1, 1)
-        ul = jax.random.uniform(kl, (n_steps, N, subpath.N_UNIFORMS), dt)
-    if tech.camera_paths and tech.light_paths:
-        cverts, (lverts, rev0) = subpath.trace_both(scene, cfg, c0, uc, D, l0, ul, n_steps)
-    elif tech.camera_paths:
-        cverts, _ = subpath.trace(scene, cfg, True, c0, uc, D)
-    else:
-        lverts, rev0 = subpath.trace(scene, cfg, False, l0, ul, n_steps)
 
-    # ---- MIS partial sums of each subpath (O(D) per subpath, then O(1) per technique) ----
-    joins = path.joins_partials(cfg)
-    cparts = lparts = None
-    log_n = path.log_n_light_tracing(cfg, N, dt)
-    if tech.camera_paths:
-        cends = subpath.camera_ends(scene, o, cverts, N)
-    if tech.light_paths:
-        lends = subpath.light_ends(scene, e, rev0, lverts, N)
-    if joins and tech.camera_paths and tech.light_paths:
-        lparts, cparts = path.both_partials(cfg, path.pdfs(lends), path.pdfs(cends), e.delta,
-                                            log_n, etas)
-    elif joins and tech.camera_paths:
-        cparts = path.camera_partials(cfg, path.pdfs(cends), log_n, etas)
-    elif joins:
-        lparts = path.light_partials(cfg, path.pdfs(lends), e.delta, etas)
-    parts = (lparts, cparts) if joins else None
+def _light_steps(cfg: RenderConfig) -> int:
+    return max(cfg.max_depth - 1, 1)
 
-    # ---- camera-side techniques ----
-    if tech.camera_paths:
-        if tech.emitter_hits and tech.merging != "first":  # ppm: in its gather
-            out.update(connect.emitter_hits(scene, cfg, cends, cverts, etas, parts))
-        if D >= 2 and tech.nee:
-            u_nee = jax.random.uniform(kn, (D - 1, N, 3), dt)
-            out.update(connect.next_event(scene, cfg, cends, u_nee, etas, parts))
-        camera_vertices = jnp.sum(cverts.alive)
-    # ---- light-side techniques ----
-    if tech.light_paths:
-        cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)),
-                             camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))[0])
-        if tech.merging == "first":
-            out[Technique("gather", 0, 0)], overflow, need = merge.photon_gather(
-                scene, cfg, cends, cverts, lends, radius)
-        if tech.light_tracing:
-            out.update(connect.light_tracing(scene, cfg, lends, e, cam_o, etas, parts))
-        if tech.connections:
-            out.update(connect.connections(scene, cfg, lends, cends, e, etas, parts))
-        if tech.merging == "all" and D >= 2:
-            vm, overflow, need = merge.vertex_merging(scene, cfg, cends, lends, e, radius, parts)
-            for j in range(vm.shape[0]):
-                out[Technique("merge", 0, j + 2)] = vm[j]  # merging at camera vertex z_{j+1}
-        light_vertices = jnp.sum(lverts.alive)
-    # ---- film ----
-    labels, images = [], []
+
+def _add(st: PassState, out: dict) -> PassState:
+    """`st` with the technique images of `out` added (dict update: a label already there
+    keeps its place and takes the new value)."""
+    labels, values = list(st.labels), list(st.values)
     for label, val in out.items():
         if not isinstance(label, Technique):
             label = Technique("connection", *label)
+        if label in labels:
+            values[labels.index(label)] = val
+        else:
+            labels.append(label)
+            values.append(val)
+    return dataclasses.replace(st, labels=tuple(labels), values=tuple(values))
+
+
+# ---- setup: the pass's random keys and merging radius
+def setup(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    _, N, _, dt = _dims(scene, cfg)
+    tech = cfg.techniques
+    radius = etas = None
+    if tech.merging is not None:
+        radius = merge.pass_radius(cfg, scene, st.pass_index)
+    if tech.merging == "all":
+        etas = merge.log_etas(radius, N, dt)
+    zero = jnp.zeros((), jnp.int32)
+    return dataclasses.replace(st, keys=jax.random.split(st.key, 5), radius=radius,
+                               etas=etas, overflow=jnp.zeros((), bool), need=zero)
+
+
+# ---- camera rays: one per path through its pixel, and the camera subpaths' uniforms
+def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    cam = scene.camera
+    P, N, D, dt = _dims(scene, cfg)
+    pixel = jnp.arange(N, dtype=jnp.int32) % P
+    u_cam = jax.random.uniform(st.keys[0], (2, N), dt)
+    o, d = jax.vmap(camera.generate_ray, in_axes=(None, 0, 0, 0))(cam, pixel, u_cam[0], u_cam[1])
+    _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
+    c0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(
+        scene, o, d, jax.lax.stop_gradient(imp))
+    uc = jax.random.uniform(st.keys[1], (D, N, subpath.N_UNIFORMS), dt)
+    return dataclasses.replace(st, origins=o, cam_start=c0, cam_u=uc)
+
+
+# ---- light emission: y_0 and the first ray of every light subpath, and their uniforms
+def light_emission(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    _, N, _, dt = _dims(scene, cfg)
+    e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
+        scene, jax.random.uniform(st.keys[3], (N, 5), dt))
+    l0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
+    ul = jax.random.uniform(st.keys[4], (_light_steps(cfg), N, subpath.N_UNIFORMS), dt)
+    return dataclasses.replace(st, emission=e, light_start=l0, light_u=ul)
+
+
+# ---- subpaths: one trace (camera and light lanes together when both run), then the
+#      records with their start vertices
+def subpaths(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    _, N, D, _ = _dims(scene, cfg)
+    tech = cfg.techniques
+    n_steps = _light_steps(cfg)
+    cverts = lverts = cends = lends = None
+    if tech.camera_paths and tech.light_paths:
+        cverts, (lverts, rev0) = subpath.trace_both(scene, cfg, st.cam_start, st.cam_u, D,
+                                                    st.light_start, st.light_u, n_steps)
+    elif tech.camera_paths:
+        cverts, _ = subpath.trace(scene, cfg, True, st.cam_start, st.cam_u, D)
+    else:
+        lverts, rev0 = subpath.trace(scene, cfg, False, st.light_start, st.light_u, n_steps)
+    if tech.camera_paths:
+        cends = subpath.camera_ends(scene, st.origins, cverts, N)
+    if tech.light_paths:
+        lends = subpath.light_ends(scene, st.emission, rev0, lverts, N)
+    return dataclasses.replace(st, cverts=cverts, lverts=lverts, cends=cends, lends=lends,
+                               cam_start=None, cam_u=None, light_start=None, light_u=None)
+
+
+# ---- MIS partial sums of each subpath (O(D) per subpath, then O(1) per technique)
+def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    _, N, _, dt = _dims(scene, cfg)
+    tech = cfg.techniques
+    lparts = cparts = None
+    log_n = path.log_n_light_tracing(cfg, N, dt)
+    if tech.camera_paths and tech.light_paths:
+        lparts, cparts = path.both_partials(cfg, path.pdfs(st.lends), path.pdfs(st.cends),
+                                            st.emission.delta, log_n, st.mis_etas)
+    elif tech.camera_paths:
+        cparts = path.camera_partials(cfg, path.pdfs(st.cends), log_n, st.mis_etas)
+    else:
+        lparts = path.light_partials(cfg, path.pdfs(st.lends), st.emission.delta, st.mis_etas)
+    return dataclasses.replace(st, parts=(lparts, cparts))
+
+
+# ---- [s = 0] emitter hits of the camera subpaths (ppm: in its gather)
+def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    return _add(st, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts))
+
+
+# ---- [s = 1] next-event estimation at camera vertices
+def next_event(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    _, N, D, dt = _dims(scene, cfg)
+    u_nee = jax.random.uniform(st.keys[2], (D - 1, N, 3), dt)
+    return _add(st, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas, st.parts))
+
+
+# ---- [t = 1] light tracing: light vertices splatted onto the film through the pinhole
+def light_tracing(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    cam = scene.camera
+    _, N, _, dt = _dims(scene, cfg)
+    o, _ = camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))
+    cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)), o)
+    return _add(st, connect.light_tracing(scene, cfg, st.lends, st.emission, cam_o,
+                                          st.mis_etas, st.parts))
+
+
+# ---- [s, t >= 2] connections of camera and light vertices
+def connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    return _add(st, connect.connections(scene, cfg, st.lends, st.cends, st.emission,
+                                        st.mis_etas, st.parts))
+
+
+# ---- merging: hash grid over the light vertices, gather at camera vertices
+def photon_gather(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    """ppm: at the first non-delta camera vertex."""
+    img, overflow, need = merge.photon_gather(scene, cfg, st.cends, st.cverts, st.lends, st.radius)
+    st = _add(st, {Technique("gather", 0, 0): img})
+    return dataclasses.replace(st, overflow=overflow, need=need)
+
+
+def vertex_merging(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    """bpm, vcm: at every camera vertex."""
+    vm, overflow, need = merge.vertex_merging(scene, cfg, st.cends, st.lends, st.emission,
+                                              st.radius, st.parts)
+    st = _add(st, {Technique("merge", 0, j + 2): vm[j]  # merging at camera vertex z_{j+1}
+                   for j in range(vm.shape[0])})
+    return dataclasses.replace(st, overflow=overflow, need=need)
+
+
+# ---- film: every technique's image, and the pass's counts
+def film(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    cam = scene.camera
+    H, W, C = cam.height, cam.width, scene.channels
+    P, _, _, dt = _dims(scene, cfg)
+    images = []
+    for val in st.values:
         if isinstance(val, tuple):  # light-tracing splat (pixel, value): each of the N
             pix, v = val                 # light paths carries 1/N already, whatever spp is
             img = jnp.zeros((P, C), dt).at[pix].add(v).reshape(H, W, C)
         else:
             img = val.reshape(cfg.spp, H, W, C).mean(axis=0)
-        labels.append(label)
         images.append(img)
+    zero = jnp.zeros((), jnp.int32)
+    camera_vertices = zero if st.cverts is None else jnp.sum(st.cverts.alive)
+    light_vertices = zero if st.lverts is None else jnp.sum(st.lverts.alive)
     stats = PassStats(camera_vertices.astype(jnp.int32), light_vertices.astype(jnp.int32),
-                      overflow, need)
-    return TechniqueImages(tuple(labels), jnp.stack(images)), stats
+                      st.overflow, st.need)
+    return dataclasses.replace(st, images=TechniqueImages(st.labels, jnp.stack(images)),
+                               stats=stats)
+
+
+def pass_stages(cfg: RenderConfig) -> list[tuple[str, Stage]]:
+    """The named stages of `cfg`'s pass, in the order they run. The techniques' order is
+    the film's (and `integrate`'s summation) order, so ppm's gather comes before the
+    light-side techniques and bpm / vcm's merging after them."""
+    tech = cfg.techniques
+    D = cfg.max_depth
+    cam, light = tech.camera_paths, tech.light_paths
+    stages: list[tuple[str, Stage]] = [("setup", setup)]
+    if cam:
+        stages.append(("camera rays", camera_rays))
+    if light:
+        stages.append(("light emission", light_emission))
+    stages.append(("subpaths", subpaths))
+    if path.joins_partials(cfg):
+        stages.append(("mis partials", mis_partials))
+    if cam and tech.emitter_hits and tech.merging != "first":
+        stages.append(("emitter hits", emitter_hits))
+    if cam and D >= 2 and tech.nee:
+        stages.append(("next-event estimation", next_event))
+    if light and tech.merging == "first":
+        stages.append(("merging", photon_gather))
+    if light and tech.light_tracing:
+        stages.append(("light tracing", light_tracing))
+    if light and tech.connections:
+        stages.append(("connections", connections))
+    if light and tech.merging == "all" and D >= 2:
+        stages.append(("merging", vertex_merging))
+    stages.append(("film", film))
+    return stages
+
+
+def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
+                     ) -> tuple[TechniqueImages, PassStats]:
+    """Every technique's weighted image of one pass (`Technique` labels), and its stats.
+    `pass_index` drives the merging radius schedule."""
+    st = PassState(key=key, pass_index=pass_index)
+    for _, stage in pass_stages(cfg):
+        st = stage(scene, cfg, st)
+    return st.images, st.stats
 
 
 def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
@@ -179,3 +334,77 @@ def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
         bad = bad + jnp.sum(~finite).astype(jnp.int32)
         img = img + jnp.where(finite, v, 0.0)
     return img, bad, stats
+
+
+# ---- profiling: each stage jitted and timed on its own
+@functools.partial(jax.jit, static_argnums=2)
+def _whole_pass(scene, key, cfg, pass_index):
+    return integrate(scene, key, cfg, pass_index)
+
+
+def _with_room(scene: Scene, cfg: RenderConfig, keys) -> RenderConfig:
+    """`cfg` with a merge capacity that none of the passes `keys` overflows (the host
+    re-run rule of `_render.with_retry`), each pass run (and compiled) once."""
+    while True:
+        stats = [_whole_pass(scene, k, cfg, i)[2] for i, k in enumerate(keys)]
+        if not any(bool(s.merge_overflow) for s in stats):
+            return cfg
+        need = max(int(s.merge_candidates) for s in stats)
+        cap = max(2 * cfg.merge_capacity, 1 << max(need - 1, 1).bit_length())
+        cfg = dataclasses.replace(cfg, merge_capacity=cap)
+
+
+def _stage_program(stage: Stage, cfg: RenderConfig):
+    """`stage` jitted on its own, returning only the arrays it makes: the state's other
+    leaves are handed on from its input on the host (a jitted program copies the inputs it
+    returns, which would charge every stage for the whole state)."""
+    where: dict = {}
+
+    def fresh(scene, st):
+        ins = {id(x): j for j, x in enumerate(jax.tree.leaves(st))}
+        leaves, where["tree"] = jax.tree.flatten(stage(scene, cfg, st))
+        where["src"] = [ins.get(id(x)) for x in leaves]
+        return [x for x in leaves if id(x) not in ins]
+
+    jitted = jax.jit(fresh)
+
+    def run(scene, st):
+        new = iter(jitted(scene, st))
+        old = jax.tree.leaves(st)
+        return jax.tree.unflatten(where["tree"], [next(new) if j is None else old[j]
+                                                  for j in where["src"]])
+
+    return run
+
+
+def profile_stages(scene: Scene, cfg: RenderConfig, passes: int = 3, seed: int = 0
+                   ) -> dict[str, float]:
+    """Median wall seconds per stage of `cfg`'s pass (`pass_stages` names, in order, plus
+    "whole pass": the usual single-jit pass) over `passes` passes with keys
+    `pass_key(seed, i)`. Each stage is jitted on its own, its inputs computed by the earlier
+    stages and waited for before its clock starts; every program is compiled and run once
+    (pass 0) before timing. The merge capacity is raised first if a pass would overflow it,
+    as the host driver does. Separate programs cannot fuse across stages, so the stages'
+    sum is usually somewhat more than the whole pass."""
+    if passes < 1:
+        raise ValueError(f"passes: must be >= 1, got {passes}")
+    keys = [jax.random.fold_in(jax.random.key(seed), i) for i in range(passes)]  # pass_key
+    cfg = _with_room(scene, cfg, keys)
+    stages = [(name, _stage_program(fn, cfg)) for name, fn in pass_stages(cfg)]
+
+    def one_pass(i, times):
+        st = jax.block_until_ready(PassState(key=keys[i], pass_index=i))
+        for name, fn in stages:
+            t0 = time.perf_counter()
+            st = jax.block_until_ready(fn(scene, st))
+            if times is not None:
+                times.setdefault(name, []).append(time.perf_counter() - t0)
+
+    one_pass(0, None)  # compile every stage
+    times: dict[str, list[float]] = {}
+    for i in range(passes):
+        one_pass(i, times)
+        t0 = time.perf_counter()
+        jax.block_until_ready(_whole_pass(scene, keys[i], cfg, i))
+        times.setdefault("whole pass", []).append(time.perf_counter() - t0)
+    return {name: float(np.median(t)) for name, t in times.items()}

@@ -1,0 +1,44 @@
+"""`jaxvcm.profile_stages`: every stage the algorithm runs is timed (positive, finite
+seconds), the stages it does not run are absent. Tiny on purpose: each stage is its own
+compiled program. (That the staged `technique_images` still renders what it did is
+`test_golden.py`.)"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+import jaxvcm
+from jaxvcm._integrator import pass_stages
+
+COMMON = ["setup", "camera rays", "subpaths", "mis partials", "emitter hits",
+          "next-event estimation", "film", "whole pass"]
+LIGHT_SIDE = ["light emission", "light tracing", "connections", "merging"]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return jaxvcm.load_scene("scenes/pool.toml", width=8, height=8)
+
+
+# vcm runs every stage (one compiled program each: the suite pays for one algorithm);
+# which stages the other algorithms run is checked without compiling below
+@pytest.mark.parametrize("alg, expected", [("vcm", COMMON + LIGHT_SIDE)])
+def test_profile_stages_names_and_times(scene, alg, expected):
+    cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=3)
+    prof = jaxvcm.profile_stages(scene, cfg, passes=1, seed=0)
+    assert sorted(prof) == sorted(expected)
+    assert list(prof)[-1] == "whole pass" and list(prof)[-2] == "film"
+    for name, sec in prof.items():
+        assert isinstance(sec, float) and math.isfinite(sec) and sec > 0, (name, sec)
+
+
+def test_pass_stages_follow_the_techniques():
+    names = {alg: [n for n, _ in pass_stages(jaxvcm.RenderConfig(algorithm=alg, max_depth=3))]
+             for alg in jaxvcm.ALGORITHMS}
+    assert "light emission" not in names["pt"] and "camera rays" not in names["lt"]
+    assert not set(LIGHT_SIDE) & set(names["pt"])
+    assert names["ppm"].index("merging") < names["ppm"].index("film")
+    assert "mis partials" not in names["ppm"]  # ppm weights without partial sums
+    assert names["vcm"].index("connections") < names["vcm"].index("merging")
