@@ -59,15 +59,11 @@ def variants(cfg: RenderConfig, M: int) -> tuple[int, int]:
     """(lowest other-side length o_lo, number of variants) of a subpath with M vertices: a
     variant with other-side length o has min(max(rr_depth - o - 1, 0), M) vertices without
     roulette before the join vertices; o <= rr_depth - 1 - M all have M, o >= rr_depth - 1
-    none."""
-    hi = cfg.rr_depth - 1
-    lo = max(0, hi - M)
+    none, and no side is longer than max_depth + 1 vertices (roulette that never starts:
+    one variant)."""
+    hi = min(cfg.rr_depth - 1, cfg.max_depth + 1)
+    lo = min(max(0, cfg.rr_depth - 1 - M), hi)
     return lo, hi - lo + 1
-
-
-def variant_index(cfg: RenderConfig, M: int, other):
-    lo, V = variants(cfg, M)
-    return jnp.clip(other, lo, lo + V - 1) - lo
 
 
 class Partials(NamedTuple):
@@ -99,28 +95,31 @@ def _tables(cfg, M, u_q, d_q, u_1, d_1, bad):
     with (u_1, d_1) (no roulette) for the last z vertices before m and (u_q, d_q) before;
     and zero[m]: `bad` among the first m vertices."""
     def step(carry, x):
-        S, z = carry
-        u, d, b = x
-        S, z = jnp.logaddexp(u, d + S), z | b
-        return (S, z), (S, z)
+        Sq, S1, z = carry
+        uq, dq, u1, d1, b = x
+        carry = (jnp.logaddexp(uq, dq + Sq), jnp.logaddexp(u1, d1 + S1), z | b)
+        return carry, carry
 
-    init = (jnp.full((), NEG, d_q.dtype), jnp.zeros((), bool))
+    neg = jnp.full((), NEG, d_q.dtype)
     lo, V = variants(cfg, M)
     z = np.array([min(max(cfg.rr_depth - o - 1, 0), M) for o in range(lo, lo + V)])[:, None]
     if M == 1:  # a lone start vertex (next-event estimation's light sample, the pinhole)
         S1 = jnp.where(z[:, 0] >= 1, u_1[0], u_q[0])
         return (jnp.stack([jnp.full((V,), NEG, d_q.dtype), S1], axis=1),
-                jnp.stack([init[1], bad[0]]))
-    _, (S, zero) = jax.lax.scan(step, init, (u_q, d_q, bad))
-    Sq = jnp.concatenate([init[0][None], S])
-    zero = jnp.concatenate([init[1][None], zero])
+                jnp.stack([jnp.zeros((), bool), bad[0]]))
+    _, (Sq, S1, zero) = jax.lax.scan(step, (neg, neg, jnp.zeros((), bool)),
+                                     (u_q, d_q, u_1, d_1, bad))
+    Sq = jnp.concatenate([neg[None], Sq])
+    S1 = jnp.concatenate([neg[None], S1])  # no roulette at all: the variants with z = M
+    zero = jnp.concatenate([jnp.zeros((1,), bool), zero])
     m = np.arange(M + 1)[None, :]
     cur = Sq[np.maximum(m - z, 0)]  # [V, M+1]: the roulette part, then z steps without it
-    for r in range(int(z.max())):
+    steps = int(np.max(np.where(z < M, z, 0)))
+    for r in range(steps):
         p = m - z + r
         pc = np.clip(p, 0, M - 1)
         cur = jnp.where((r < z) & (p >= 0), jnp.logaddexp(u_1[pc], d_1[pc] + cur), cur)
-    return cur, zero
+    return jnp.where(z >= M, S1[None, :], cur), zero
 
 
 def subpath(cfg: RenderConfig, A, B, q, delta, medium, camera_side, delta_light=False,
