@@ -22,11 +22,16 @@ def scene():
     return jaxvcm.load_scene("scenes/pool.toml", width=8, height=8)
 
 
-# vcm runs every stage (one compiled program each: the suite pays for one algorithm);
-# which stages the other algorithms run is checked without compiling below
-@pytest.mark.parametrize("alg, expected", [("vcm", COMMON + LIGHT_SIDE)])
+# bpm: both sides, the partial sums and merging with its capacity check (one compiled
+# program per stage: the suite pays for one small algorithm); which stages every
+# algorithm runs is checked without compiling below
+BPM = ["setup", "camera rays", "light emission", "subpaths", "mis partials", "emitter hits",
+       "merging", "film", "whole pass"]
+
+
+@pytest.mark.parametrize("alg, expected", [("bpm", BPM)])
 def test_profile_stages_names_and_times(scene, alg, expected):
-    cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=3)
+    cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=2)
     prof = jaxvcm.profile_stages(scene, cfg, passes=1, seed=0)
     assert sorted(prof) == sorted(expected)
     assert list(prof)[-1] == "whole pass" and list(prof)[-2] == "film"
@@ -39,6 +44,9 @@ def test_pass_stages_follow_the_techniques():
              for alg in jaxvcm.ALGORITHMS}
     assert "light emission" not in names["pt"] and "camera rays" not in names["lt"]
     assert not set(LIGHT_SIDE) & set(names["pt"])
+    assert names["vcm"] == ["setup", "camera rays", "light emission", "subpaths",
+                            "mis partials", "emitter hits", "next-event estimation",
+                            "light tracing", "connections", "merging", "film"]
     assert names["ppm"].index("merging") < names["ppm"].index("film")
     assert "mis partials" not in names["ppm"]  # ppm weights without partial sums
     assert names["vcm"].index("connections") < names["vcm"].index("merging")
