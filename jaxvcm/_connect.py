@@ -177,9 +177,9 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
         w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), pdfs(cam), (None, 1),
                            A_s, A_s1, B0, one, is_delta_l, inf, log_n, etas)
     else:  # the light sample's own one-vertex partials, fields [..., J, N]
-        per_j = jax.vmap(lambda p, dl: light_partials(cfg, Pdfs(*(a.T for a in p)), dl, etas),
-                         out_axes=-2)
-        w = family_join_weights(cfg, np.ones(J), js + 1, per_j(lig, is_delta_l), parts[1],
+        per_j = light_partials(cfg, Pdfs(*(jnp.moveaxis(a, -1, 0) for a in lig)), is_delta_l,
+                               etas)  # fields [..., J, N]
+        w = family_join_weights(cfg, np.ones(J), js + 1, per_j, parts[1],
                                 A_s, A_s1, B0, one, is_delta_l, inf, log_n, lanes_of_L=False)
     ok = z.alive & ~z.delta & ls.valid & vis
     contrib = jnp.where(ok[..., None], contrib * w[..., None], 0.0)

@@ -93,38 +93,43 @@ class Partials(NamedTuple):
 def _tables(cfg, M, u_q, d_q, u_1, d_1, bad):
     """Per variant, log-sums S[m] (m = 0..M) of S(p+1) = u_p (+) (d_p + S(p)), S(0) = -inf,
     with (u_1, d_1) (no roulette) for the last z vertices before m and (u_q, d_q) before;
-    and zero[m]: `bad` among the first m vertices."""
+    and zero[m]: `bad` among the first m vertices. Inputs [M, *lanes] -> [V, M+1, *lanes],
+    [M+1, *lanes]."""
     def step(carry, x):
         Sq, S1, z = carry
         uq, dq, u1, d1, b = x
         carry = (jnp.logaddexp(uq, dq + Sq), jnp.logaddexp(u1, d1 + S1), z | b)
         return carry, carry
 
-    neg = jnp.full((), NEG, d_q.dtype)
+    lanes = d_q.shape[1:]
+    ex = (1,) * len(lanes)  # trailing lane axes of the static masks
+    neg = jnp.full(lanes, NEG, d_q.dtype)
+    no = jnp.zeros(lanes, bool)
     lo, V = variants(cfg, M)
     z = np.array([min(max(cfg.rr_depth - o - 1, 0), M) for o in range(lo, lo + V)])[:, None]
     if M == 1:  # a lone start vertex (next-event estimation's light sample, the pinhole)
-        S1 = jnp.where(z[:, 0] >= 1, u_1[0], u_q[0])
-        return (jnp.stack([jnp.full((V,), NEG, d_q.dtype), S1], axis=1),
-                jnp.stack([jnp.zeros((), bool), bad[0]]))
-    _, (Sq, S1, zero) = jax.lax.scan(step, (neg, neg, jnp.zeros((), bool)),
-                                     (u_q, d_q, u_1, d_1, bad))
+        S1 = jnp.where(z.reshape((V,) + ex) >= 1, u_1[0], u_q[0])
+        return (jnp.stack([jnp.broadcast_to(neg, S1.shape), S1], axis=1),
+                jnp.stack([no, bad[0]]))
+    _, (Sq, S1, zero) = jax.lax.scan(step, (neg, neg, no), (u_q, d_q, u_1, d_1, bad))
     Sq = jnp.concatenate([neg[None], Sq])
     S1 = jnp.concatenate([neg[None], S1])  # no roulette at all: the variants with z = M
-    zero = jnp.concatenate([jnp.zeros((1,), bool), zero])
+    zero = jnp.concatenate([no[None], zero])
     m = np.arange(M + 1)[None, :]
     cur = Sq[np.maximum(m - z, 0)]  # [V, M+1]: the roulette part, then z steps without it
     steps = int(np.max(np.where(z < M, z, 0)))
     for r in range(steps):
         p = m - z + r
         pc = np.clip(p, 0, M - 1)
-        cur = jnp.where((r < z) & (p >= 0), jnp.logaddexp(u_1[pc], d_1[pc] + cur), cur)
-    return jnp.where(z >= M, S1[None, :], cur), zero
+        on = ((r < z) & (p >= 0)).reshape((V, M + 1) + ex)
+        cur = jnp.where(on, jnp.logaddexp(u_1[pc], d_1[pc] + cur), cur)
+    return jnp.where((z >= M).reshape((V, 1) + ex), S1[None], cur), zero
 
 
 def subpath(cfg: RenderConfig, A, B, q, delta, medium, camera_side, delta_light=False,
             log_n_lt=0.0, etas=(0.0, 0.0)) -> Partials:
-    """Partials of one subpath (one lane: A, B, q, delta, medium [M]): a light subpath
+    """Partials of one subpath (A, B, q, delta, medium [M, *lanes]: vertices first, any
+    trailing lane axes; camera_side, delta_light broadcast against the lanes): a light subpath
     y_0..y_{M-1} (`camera_side` False) or a camera subpath z_0..z_{M-1} (True; z_0 the
     pinhole); `camera_side` may be a traced flag (light and camera lanes in one call).
     The pdfs the join re-evaluates (B of a light subpath's, A of a camera subpath's last
@@ -138,15 +143,16 @@ def subpath(cfg: RenderConfig, A, B, q, delta, medium, camera_side, delta_light=
     M = A.shape[0]
     dt = A.dtype
     delta_light = jnp.asarray(delta_light, bool)
-    i = np.arange(M)
-    q_prev = jnp.concatenate([jnp.ones((1,), dt), q[:-1]])
-    q_next = jnp.concatenate([q[1:], jnp.ones((1,), dt)])
+    i = np.arange(M).reshape((M,) + (1,) * (A.ndim - 1))
+    one = jnp.ones((1,) + A.shape[1:], dt)
+    q_prev = jnp.concatenate([one, q[:-1]])
+    q_next = jnp.concatenate([q[1:], one])
     own = jnp.where(camera_side, B, A)
     other = jnp.where(camera_side, A, B)
     local = own * jnp.where(i >= 1, _rr(i - 1, q_prev, cfg.rr_depth), 1.0)
     lp = _log_pos(local, 0.0)
     leta = jnp.where(medium, etas[1], etas[0]).astype(dt)
-    d_prev = jnp.concatenate([jnp.zeros((1,), bool), delta[:-1]])
+    d_prev = jnp.concatenate([jnp.zeros((1,) + A.shape[1:], bool), delta[:-1]])
     # the connection technique that starts at the vertex: light x_i starts technique i
     # (x_{i-1} - x_i; i = 0 the emitter hit, i = 1 next-event estimation); camera z_c
     # starts technique k - c + 1 (z_c - z_{c-1}; c = 1 light tracing, c = 0 none)

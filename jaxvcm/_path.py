@@ -138,18 +138,17 @@ def joins_partials(cfg: RenderConfig) -> bool:
 
 
 def light_partials(cfg: RenderConfig, lig: Pdfs, delta_light, etas=(0.0, 0.0)):
-    """`_mis_partial.Partials` of light subpaths: lig fields [M, N] -> fields [..., N]."""
-    f = jax.vmap(_mis_partial.light, in_axes=(None, 1, 1, 1, 1, 1, 0, None), out_axes=-1)
+    """`_mis_partial.Partials` of light subpaths: lig fields [M, *lanes] -> [..., *lanes]."""
     sg = jax.lax.stop_gradient
-    return f(cfg, sg(lig.A), sg(lig.B), sg(lig.q), lig.delta, lig.medium,
-             jnp.broadcast_to(delta_light, lig.A.shape[1:]), sg(etas))
+    return _mis_partial.light(cfg, sg(lig.A), sg(lig.B), sg(lig.q), lig.delta, lig.medium,
+                              delta_light, sg(etas))
 
 
 def camera_partials(cfg: RenderConfig, cam: Pdfs, log_n_lt, etas=(0.0, 0.0)):
-    """`_mis_partial.Partials` of camera subpaths: cam fields [M, N] -> fields [..., N]."""
-    f = jax.vmap(_mis_partial.camera, in_axes=(None, 1, 1, 1, 1, 1, None, None), out_axes=-1)
+    """`_mis_partial.Partials` of camera subpaths: cam fields [M, *lanes] -> [..., *lanes]."""
     sg = jax.lax.stop_gradient
-    return f(cfg, sg(cam.A), sg(cam.B), sg(cam.q), cam.delta, cam.medium, sg(log_n_lt), sg(etas))
+    return _mis_partial.camera(cfg, sg(cam.A), sg(cam.B), sg(cam.q), cam.delta, cam.medium,
+                               sg(log_n_lt), sg(etas))
 
 
 def both_partials(cfg: RenderConfig, lig: Pdfs, cam: Pdfs, delta_light, log_n_lt,
@@ -165,13 +164,12 @@ def both_partials(cfg: RenderConfig, lig: Pdfs, cam: Pdfs, delta_light, log_n_lt
         pad = jnp.full((Mc - Ml, N), fill, a.dtype)
         return jnp.concatenate([jnp.concatenate([a, pad]), b], axis=1)
 
-    f = jax.vmap(_mis_partial.subpath, in_axes=(None, 1, 1, 1, 1, 1, 0, 0, None, None),
-                 out_axes=-1)
-    P = f(cfg, sg(cat(lig.A, cam.A, 1)), sg(cat(lig.B, cam.B, 1)), sg(cat(lig.q, cam.q, 1)),
-          cat(lig.delta, cam.delta, False), cat(lig.medium, cam.medium, False),
-          jnp.arange(2 * N) >= N,
-          jnp.concatenate([jnp.broadcast_to(delta_light, (N,)), jnp.zeros((N,), bool)]),
-          sg(log_n_lt), sg(etas))
+    P = _mis_partial.subpath(
+        cfg, sg(cat(lig.A, cam.A, 1)), sg(cat(lig.B, cam.B, 1)), sg(cat(lig.q, cam.q, 1)),
+        cat(lig.delta, cam.delta, False), cat(lig.medium, cam.medium, False),
+        jnp.arange(2 * N) >= N,
+        jnp.concatenate([jnp.broadcast_to(delta_light, (N,)), jnp.zeros((N,), bool)]),
+        sg(log_n_lt), sg(etas))
     return (jax.tree.map(lambda a: a[..., :N], P), jax.tree.map(lambda a: a[..., N:], P))
 
 
