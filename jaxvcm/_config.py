@@ -79,6 +79,9 @@ class RenderConfig:
     alpha:       radius reduction exponent (0 < alpha < 1).
     merge_capacity: static bound on hash-grid candidates per gather point; overflow is
                  flagged in the diagnostics and the host re-runs the pass with more room.
+    trace_split: the subpath tracer advances 1/trace_split of the lanes per round, taking
+                 only lanes whose subpath is still alive (`_subpath.trace`); 1 = every
+                 lane every round. Changes the work, not the result.
     mis_form:    "explicit" (log-space sums over all techniques, `_mis.py`) or "recursive"
                  (the tech report's dVCM/dVC/dVM recursion in linear space,
                  `_mis_recursive.py`: same weights, but limited float32 range).
@@ -94,6 +97,7 @@ class RenderConfig:
     alpha: float = 0.75
     merge_capacity: int = 512
     mis_form: str = "explicit"
+    trace_split: int = 8
 
     @property
     def techniques(self) -> Techniques:
@@ -107,7 +111,7 @@ class RenderConfig:
             raise ValueError(f"config.mis: unknown {self.mis!r}; one of {MIS_HEURISTICS}")
         if self.mis_form not in MIS_FORMS:
             raise ValueError(f"config.mis_form: unknown {self.mis_form!r}; one of {MIS_FORMS}")
-        for name in ("max_depth", "march_steps", "spp"):
+        for name in ("max_depth", "march_steps", "spp", "trace_split"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")

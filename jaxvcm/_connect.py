@@ -29,6 +29,7 @@ from ._camera import camera_importance
 from ._config import RenderConfig
 from ._path import (Pdfs, both_dispersed, camera_partials, family_join_weights, family_weights,
                     light_partials, log_n_light_tracing, pdfs, reverse_pdf)
+from ._queue import masked_map
 from ._scene import LIGHT_SKY, LIGHT_SUN, Scene
 from ._subpath import PathEnds, rows
 from ._vec import Vec3
@@ -45,9 +46,17 @@ def _conv(target_medium, target_n: Vec3, w: Vec3, d, seg_water, scene: Scene, in
     return subpath.to_area(1.0, target_medium, target_n, w, d, seg_water, scene.water, infinite)
 
 
-def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb):
+def _unoccluded(scene: Scene, cfg: RenderConfig, o: Vec3, w: Vec3, tmax, want):
+    """Shadow rays [J, N], traced only where `want` holds (False elsewhere; `_queue`)."""
+    return masked_map(lambda o_, w_, t_: geometry.unoccluded(scene, o_, w_, t_, cfg.march_steps),
+                      want, (o, w, tmax), False, cfg.trace_split)
+
+
+def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb,
+             want):
     """Mutual visibility of two vertices (offset on the correct sides), the unit direction
-    a -> b, the distance, and whether the segment runs through the water. [J, N]"""
+    a -> b, the distance, and whether the segment runs through the water. [J, N]; the
+    visibility is only tested (and can only be True) where `want` holds."""
     dv = pb - pa
     d = vec.length(dv)
     w = dv / jnp.maximum(d, 1e-30)
@@ -56,8 +65,7 @@ def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, 
     dd = ob - oa
     ddl = vec.length(dd)
     wd = dd / jnp.maximum(ddl, 1e-30)
-    vis = vv(lambda o, w_, t: geometry.unoccluded(scene, o, w_, t, cfg.march_steps))(
-        oa, wd, ddl * (1.0 - 1e-5))
+    vis = _unoccluded(scene, cfg, oa, wd, ddl * (1.0 - 1e-5), want)
     if scene.water.enabled:
         # a medium vertex lies inside the water body, so membership of the spawn point
         # decides for every kind of end (the camera included)
@@ -148,7 +156,8 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
     f = _f(scene)(z.kind, z.mat, z.wo, ls.wi, z.n)
     oz = subpath.spawn(z.p, z.n, z.medium, ls.wi)
     tmax = jnp.where(inf, jnp.inf, vec.length(y - oz) * (1.0 - 1e-4))
-    vis = vv(lambda o, w_, tm: geometry.unoccluded(scene, o, w_, tm, cfg.march_steps))(oz, ls.wi, tmax)
+    ok = z.alive & ~z.delta & ls.valid
+    vis = _unoccluded(scene, cfg, oz, ls.wi, tmax, ok)
     if scene.water.enabled:
         wseg = vv(lambda o: geometry.inside_water(scene.water, o))(oz)
     else:
@@ -181,7 +190,7 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
                                etas)  # fields [..., J, N]
         w = family_join_weights(cfg, np.ones(J), js + 1, per_j, parts[1],
                                 A_s, A_s1, B0, one, is_delta_l, inf, log_n, lanes_of_L=False)
-    ok = z.alive & ~z.delta & ls.valid & vis
+    ok = ok & vis
     contrib = jnp.where(ok[..., None], contrib * w[..., None], 0.0)
     return {(1, int(j) + 1): contrib[i] for i, j in enumerate(js)}
 
@@ -197,7 +206,10 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     y, yp = rows(lig, idx), rows(lig, np.maximum(idx - 1, 0))
     J = len(idx)
     co = Vec3(*(jnp.broadcast_to(c, (J, N)) for c in cam_o))
-    vis, w, d, wseg = _visible(scene, cfg, co, y.n, jnp.ones((J, N), bool), y.p, y.n, y.medium)
+    first = (idx == 0)[:, None]
+    ok = jnp.where(first, ~e.infinite[None], y.alive & ~y.delta)
+    vis, w, d, wseg = _visible(scene, cfg, co, y.n, jnp.ones((J, N), bool), y.p, y.n, y.medium,
+                               ok)
     pix, imp, inside = vv(lambda w_: camera_importance(scene, w_))(w)
     Tr = _tr(scene, wseg, d)
     to_cam = -w
@@ -206,9 +218,7 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
         jnp.broadcast_to(e.light, (J, N)), y.n, to_cam)
     f0 = Le0 * jnp.abs(vec.dot(y.n, to_cam))[..., None]
     fi = _f(scene)(y.kind, y.mat, y.wo, to_cam, y.n)
-    first = (idx == 0)[:, None]
     fterm = jnp.where(first[..., None], f0, fi)
-    ok = jnp.where(first, ~e.infinite[None], y.alive & ~y.delta)
     contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30))[..., None] / N
     # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
     B_s1 = imp * _conv(y.medium, y.n, w, d, wseg, scene)
@@ -245,7 +255,8 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     ts = np.array([p[1] for p in pairs])
     y, yp = rows(lig, ss - 1), rows(lig, ss - 2)
     z, zp = rows(cam, ts - 1), rows(cam, ts - 2)
-    vis, w, d, wseg = _visible(scene, cfg, z.p, z.n, z.medium, y.p, y.n, y.medium)  # w: z -> y
+    ok = y.alive & ~y.delta & z.alive & ~z.delta
+    vis, w, d, wseg = _visible(scene, cfg, z.p, z.n, z.medium, y.p, y.n, y.medium, ok)  # z -> y
     fy = _f(scene)(y.kind, y.mat, y.wo, -w, y.n)
     fz = _f(scene)(z.kind, z.mat, z.wo, w, z.n)
     Tr = _tr(scene, wseg, d)
@@ -265,6 +276,6 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     else:
         wgt = family_join_weights(cfg, ss, ts, parts[0], parts[1], A_s, A_s1, B_s1, B_s2,
                                   e.delta[None], e.infinite[None], log_n)
-    ok = y.alive & ~y.delta & z.alive & ~z.delta & vis
+    ok = ok & vis
     val = jnp.where(ok[..., None], contrib * wgt[..., None], 0.0)
     return {pr: val[i] for i, pr in enumerate(pairs)}

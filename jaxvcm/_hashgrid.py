@@ -293,7 +293,9 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
     return_need: also return the longest candidate list of any query (int32), which is the
     capacity that would have been enough: the host re-runs once with that much room.
     Queries are (optionally, static `sort_queries`) sorted by block, then processed in
-    chunks of `chunk` (static) lanes: work ~ sum over chunks of chunk * max candidates.
+    chunks of `chunk` (static) lanes: distance tests ~ sum over chunks of chunk * max
+    candidates; the kernel runs on the neighbour pairs only, `chunk` pairs per call
+    (compacted as they are found), so kernel work ~ number of pairs + one call per chunk.
     """
     n_q = jnp.shape(qx)[0]
     dt = grid.dtype
@@ -313,20 +315,41 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
         qi, (cx, cy, cz) = args
         blk = _block(grid, cx, cy, cz, r)
         tmax = jnp.max(blk.total)
+        B = cx.shape[0]
+        lane_ids = lax.iota(jnp.int32, B)
 
-        def step(t, acc):
+        # ---- the kernel runs on neighbour pairs only: the pairs found at each candidate
+        #      step are appended to a queue of 2B; whenever B are waiting, one kernel call
+        #      on B pairs, scatter-added to their lanes (each lane's pairs in candidate order)
+        def flush(c):
+            acc, ql, qp, qd, n = c
+            valid = lax.iota(jnp.int32, B) < n
+            ln = jnp.where(valid, ql[:B], 0)
+            v = fn(_gather(qi, ln), jnp.where(valid, qp[:B], qp[0]), qd[:B])
+            acc = jax.tree.map(
+                lambda a, x: a.at[jnp.where(valid, ln, B)].add(x, mode="drop"), acc, v)
+            shift = lambda q: jnp.concatenate([q[B:], q[B:]])  # noqa: E731
+            return acc, shift(ql), shift(qp), shift(qd), jnp.maximum(n - B, 0)
+
+        def step(t, c):
+            acc, ql, qp, qd, n = c
             hit, pos, d2 = _test(grid, cx, cy, cz, r2, blk, t)
-            v = fn(qi, _gather(grid.order, pos), d2)
-            mask = lambda x: hit.reshape(hit.shape + (1,) * (x.ndim - 1))  # noqa: E731
-            return jax.tree.map(lambda a, x: a + jnp.where(mask(x), x, jnp.zeros_like(x)), acc, v)
+            at = jnp.where(hit, n + jnp.cumsum(hit, dtype=jnp.int32) - 1, 2 * B)
+            ql = ql.at[at].set(lane_ids, mode="drop")
+            qp = qp.at[at].set(_gather(grid.order, pos), mode="drop")
+            qd = qd.at[at].set(d2, mode="drop")
+            c = acc, ql, qp, qd, n + jnp.sum(hit, dtype=jnp.int32)
+            return lax.cond(c[-1] >= B, flush, lambda c: c, c)
 
+        zi = jnp.zeros((2 * B,), jnp.int32)
+        c = (zeros, zi, zi, jnp.zeros((2 * B,), dt), jnp.zeros((), jnp.int32))
         if cap is None:
-            _, acc = lax.while_loop(lambda s: s[0] < tmax,
-                                    lambda s: (s[0] + 1, step(s[0], s[1])),
-                                    (jnp.zeros((), jnp.int32), zeros))
-            return acc, tmax.astype(jnp.int32)
-        acc = lax.fori_loop(
-            0, cap, lambda t, s: lax.cond(t < tmax, partial(step, t), lambda s: s, s), zeros)
+            _, c = lax.while_loop(lambda s: s[0] < tmax, lambda s: (s[0] + 1, step(s[0], s[1])),
+                                  (jnp.zeros((), jnp.int32), c))
+        else:
+            c = lax.fori_loop(0, cap, lambda t, c: lax.cond(t < tmax, partial(step, t),
+                                                            lambda c: c, c), c)
+        acc = lax.cond(c[-1] > 0, flush, lambda c: c, c)[0]
         return acc, tmax.astype(jnp.int32)
 
     acc, need = lax.map(one_chunk, (qs.qi, tuple(qs.q)))

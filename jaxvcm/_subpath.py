@@ -231,39 +231,91 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     return state, vertex
 
 
-def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int
-          ) -> Vertex:
-    """Trace N subpaths from batched start states; u: [n_steps, N, N_UNIFORMS].
-    `radiance`: True (camera subpaths), False (light subpaths) or a [N] per-lane flag
-    (`trace_both`)."""
+def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,
+          limit=None) -> tuple[Vertex, Array]:
+    """Trace L subpaths from batched start states; u: [n_steps, L, N_UNIFORMS].
+    `radiance`: True (camera subpaths), False (light subpaths) or an [L] per-lane flag
+    (`trace_both`); `limit`: optional [L] per-lane step count (<= n_steps).
+    Returns the records [n_steps, L] (dead records hold `_dead_records`' values) and each
+    lane's y_0 / z_0 reverse pdf p(v_0 | v_1) (1 where v_1 does not exist).
+
+    A queue of lanes, not a loop over depths: each round advances the first
+    L / cfg.trace_split lanes that are still alive by one vertex (gather, `step`, scatter
+    back), so the work follows the vertices that exist, not L x n_steps. Rounds with no
+    live lane left are skipped (`lax.cond` on a scalar); there are enough rounds for
+    every lane to run every step, so nothing is ever dropped. Each lane sees the same
+    uniforms (u[its depth, its lane]) as in a loop over depths: the records do not depend
+    on the round width."""
     static = isinstance(radiance, bool)
-    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, None, 0, 0))
+    L = s0.alive.shape[0]
+    limit = jnp.full((L,), n_steps, jnp.int32) if limit is None else limit
+    W = -(-L // cfg.trace_split)  # lanes per round
+    rounds = -(-(n_steps * L) // W)
+    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, 0, 0, 0))
+    verts0 = _dead_records(s0, n_steps, scene.channels)
+    rev0 = jnp.ones((L,), s0.pdf_w.dtype)
+    k0 = jnp.zeros((L,), jnp.int32)  # vertices recorded so far, per lane
 
-    def body(s, x):
-        i, ui = x
-        return vstep(scene, cfg, radiance, i, s, ui)
+    def advance(carry):
+        s, k, verts, rev0 = carry
+        lane = jnp.nonzero(s.alive & (k < limit), size=W, fill_value=L)[0]
+        g = jnp.minimum(lane, L - 1)  # padding lanes compute lane L-1's step; dropped below
+        kg = jnp.minimum(k[g], n_steps - 1)
+        s_g = jax.tree.map(lambda a: a[g], s)
+        mode = radiance if static else radiance[g]
+        s_new, v = vstep(scene, cfg, mode, kg, s_g, u[kg, g])
+        s = jax.tree.map(lambda a, b: a.at[lane].set(b, mode="drop"), s, s_new)
+        k = k.at[lane].add(1, mode="drop")
+        # v_k's record at (k, lane); the pdf_rev it computed belongs to v_{k-1} (y_0 / z_0
+        # for k = 0)
+        row = jnp.where(lane < L, kg, n_steps)
+        rec = v._replace(pdf_rev=jnp.ones_like(v.pdf_rev))  # set when v_{k+1} is traced
+        verts = jax.tree.map(lambda a, b: a.at[row, lane].set(b, mode="drop"), verts, rec)
+        prev = jnp.where((kg > 0) & (lane < L), kg - 1, n_steps)
+        verts = verts._replace(pdf_rev=verts.pdf_rev.at[prev, lane].set(v.pdf_rev, mode="drop"))
+        rev0 = rev0.at[jnp.where(kg == 0, lane, L)].set(v.pdf_rev, mode="drop")
+        return s, k, verts, rev0
 
-    idx = jnp.arange(n_steps, dtype=jnp.int32)
-    _, verts = jax.lax.scan(body, s0, (idx, u[:n_steps]))
-    # pdf_rev was computed at v_{j+1} for v_j: shift it back by one vertex. The last
-    # vertex's reverse pdf is only ever set by a connection.
-    rev_next = jnp.concatenate([verts.pdf_rev[1:], jnp.ones_like(verts.pdf_rev[:1])], axis=0)
-    return verts._replace(pdf_rev=rev_next), verts.pdf_rev[0]
+    def body(carry, _):
+        s, k = carry[0], carry[1]
+        busy = jnp.any(s.alive & (k < limit))
+        return jax.lax.cond(busy, advance, lambda c: c, carry), None
+
+    (_, _, verts, rev0), _ = jax.lax.scan(body, (s0, k0, verts0, rev0), None, length=rounds)
+    return verts, rev0
+
+
+def _dead_records(s0: WalkState, n_steps: int, C: int) -> Vertex:
+    """Records of vertices that are never traced: not alive, zero throughput, unit pdfs;
+    positions, normals and directions from the lane's start (finite, so that masked-out
+    geometry downstream stays finite)."""
+    L = s0.alive.shape[0]
+    dt = s0.pdf_w.dtype
+
+    def full(x, dtype=None):
+        x = jnp.asarray(x, dtype)
+        return jnp.broadcast_to(x, (n_steps, L) + x.shape[1:] if x.ndim else (n_steps, L))
+
+    f = full(False)
+    return Vertex(
+        jax.tree.map(full, s0.o), jax.tree.map(full, s0.n_prev), jax.tree.map(full, -s0.d),
+        jnp.zeros((n_steps, L, C), dt), full(jnp.ones((), dt)), full(jnp.ones((), dt)),
+        full(KIND_NONE, jnp.int32), full(0, jnp.int32), full(-1, jnp.int32),
+        jnp.zeros((n_steps, L, C), dt), full(jnp.ones((), dt)), f, f, f, f, f)
 
 
 def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: int,
                light0: WalkState, u_light, n_light: int):
     """Camera and light subpaths in one trace (one copy of `step` in the compiled program):
     the 2N lanes carry their transport mode as a per-lane flag, and each lane computes
-    exactly what its own `trace` would (its uniforms, its mode). The light lanes run
-    n_cam >= n_light steps; their extra steps are discarded. Returns (camera records
+    exactly what its own `trace` would (its uniforms, its mode, its number of steps). Returns (camera records
     [n_cam, N], (light records [n_light, N], y_0's reverse pdf))."""
     N = u_cam.shape[1]
     pad = jnp.zeros((n_cam - n_light,) + u_light.shape[1:], u_light.dtype)
     u = jnp.concatenate([u_cam[:n_cam], jnp.concatenate([u_light[:n_light], pad])], axis=1)
     s0 = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), cam0, light0)
     mode = jnp.arange(2 * N) < N
-    verts, rev0 = trace(scene, cfg, mode, s0, u, n_cam)
+    verts, rev0 = trace(scene, cfg, mode, s0, u, n_cam, jnp.where(mode, n_cam, n_light))
     cverts = jax.tree.map(lambda a: a[:, :N], verts)
     lverts = jax.tree.map(lambda a: a[:n_light, N:], verts)
     # the light records end at n_light: their last reverse pdf is set by a connection
