@@ -21,6 +21,11 @@ independent.
 (equal-time image grid) are the vertex-merging modes of `benchmarks/vertex_merging.py`;
 `--dispersion` (spectral dispersion modes) is in `benchmarks/spectral.py`.
 
+`--peer mitsuba`: jaxvcm and Mitsuba 3 on the same scenes in one run (camera paths/s of PT
+and Mitsuba's `volpath`, equal-time relative RMSE of each against a long jaxvcm VCM
+reference, the ratio of image means); `benchmarks/peer_mitsuba.py`. Without Mitsuba it
+prints one line and exits with status 2.
+
 `--profile`: seconds per stage of one pass (`jaxvcm.profile_stages`: camera rays, light
 emission, subpaths, MIS partials, each technique, merging, film; each stage its own
 compiled program) against the whole single-jit pass, one table per scene (stages x
@@ -47,6 +52,7 @@ import jaxvcm
 from jaxvcm import __version__
 
 from . import _common as C
+from . import peer_mitsuba as _peer
 from . import spectral as _sp
 from . import vertex_merging as _vm
 
@@ -147,8 +153,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="where references are stored and reused (default docs/bench_refs/)")
     p.add_argument("--rebuild-references", action="store_true",
                    help="render new references even if matching ones are stored")
-    p.add_argument("--reference-algorithm", default="pt", metavar="ALG",
-                   help="algorithm of the reference renders (default pt)")
+    p.add_argument("--reference-algorithm", default=None, metavar="ALG",
+                   help="algorithm of the reference renders (default pt; --peer: vcm)")
     p.add_argument("--seed", type=_int_ge(0, MAX_SEED), default=0,
                    help="seed of the measured renders (references use seed + "
                    f"{REF_SEED_OFFSET})")
@@ -200,6 +206,26 @@ def _parser() -> argparse.ArgumentParser:
                    "own) and of the whole pass, over --throughput-passes passes (defaults: "
                    f"scene {', '.join(PROFILE_DEFAULT_SCENES)}, algorithms "
                    f"{' '.join(PROFILE_DEFAULT_ALGORITHMS)}, size {PROFILE_DEFAULT_SIZE})")
+    g = p.add_argument_group(
+        "peer renderer (writes the 'Peer: Mitsuba 3' section of --out, replaced in place "
+        "or appended, <out stem>_peer-mitsuba.json and peer_mitsuba.png next to it; "
+        "--scenes, --size, --max-depth, --seed, --throughput-passes and the reference "
+        "options apply; --quick sets size 32, 2 s per renderer, a 5 s reference and the "
+        "throughput at size 32; needs the optional extra `peer` (Mitsuba 3): without it, "
+        f"one line on stderr and exit status {_peer.EXIT_UNAVAILABLE})")
+    g.add_argument("--peer", choices=_peer.PEERS,
+                   help="render the same scenes with the peer renderer in the same run: "
+                   "camera paths/s of jaxvcm PT and the peer at "
+                   f"{_peer.THROUGHPUT_SIZE}x{_peer.THROUGHPUT_SIZE} (first scene) and their "
+                   "ratio, then per scene both for --peer-seconds each at --size: relative "
+                   "RMSE against a long jaxvcm VCM reference and the ratio of image means "
+                   f"(defaults: scenes {' '.join(_peer.DEFAULT_SCENES)}, size "
+                   f"{_peer.DEFAULT_SIZE}, reference {_peer.DEFAULT_REFERENCE_TIME:g} s)")
+    g.add_argument("--peer-seconds", type=_pos_float, default=None, metavar="SEC",
+                   help="equal-time budget per renderer and scene (default "
+                   f"{_peer.DEFAULT_SECONDS:g})")
+    g.add_argument("--peer-variant", default=_peer.VARIANT, metavar="VARIANT",
+                   help=f"Mitsuba variant (default {_peer.VARIANT})")
     return p
 
 
@@ -762,6 +788,19 @@ def _settings(argv):
         a.mode = "profile"
         if a.throughput_passes < 1:
             raise _Usage("--throughput-passes: --profile needs at least 1")
+    if a.peer:
+        if a.mode:
+            raise _Usage(f"--peer: not allowed with --{a.mode}")
+        a.mode = "peer"
+        if a.algorithms:
+            raise _Usage("--algorithms: not available with --peer (jaxvcm runs pt, the "
+                         "reference vcm)")
+    elif a.peer_seconds is not None:
+        raise _Usage("--peer-seconds: only with --peer")
+    if a.peer_seconds is None:
+        a.peer_seconds = 2.0 if a.quick else _peer.DEFAULT_SECONDS
+    if a.reference_algorithm is None:
+        a.reference_algorithm = _peer.REFERENCE_ALGORITHM if a.mode == "peer" else "pt"
     if a.mis_pairs is None:
         a.mis_pairs = _sp.DEFAULT_ROUNDS if a.mode == "dispersion" else _vm.MIS_DEFAULT_PAIRS
     if a.mode not in (None, "profile") and a.full_size:
@@ -771,7 +810,8 @@ def _settings(argv):
     mode_algs = {"compare-mis": _vm.MIS_DEFAULT_ALGORITHMS,
                  "equal-time": _vm.ET_DEFAULT_ALGORITHMS,
                  "dispersion": list(_sp.DEFAULT_ALGORITHMS),
-                 "profile": list(PROFILE_DEFAULT_ALGORITHMS)}.get(a.mode, ["pt"])
+                 "profile": list(PROFILE_DEFAULT_ALGORITHMS),
+                 "peer": ["pt"]}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
         if alg not in jaxvcm.ALGORITHMS:
@@ -781,7 +821,8 @@ def _settings(argv):
     mode_scenes = {"compare-mis": _vm.MIS_DEFAULT_SCENES,
                    "equal-time": _vm.ET_DEFAULT_SCENES,
                    "dispersion": _sp.DEFAULT_SCENES,
-                   "profile": PROFILE_DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
+                   "profile": PROFILE_DEFAULT_SCENES,
+                   "peer": _peer.DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
     names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
                                                      for s in mode_scenes]
     a.scene_paths = [_resolve_scene(s) for s in names]
@@ -795,11 +836,14 @@ def _settings(argv):
                   {"compare-mis": _vm.MIS_DEFAULT_SIZE,
                    "equal-time": _vm.ET_DEFAULT_SIZE,
                    "dispersion": _sp.DEFAULT_SIZE,
-                   "profile": PROFILE_DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
+                   "profile": PROFILE_DEFAULT_SIZE,
+                   "peer": _peer.DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
     if a.max_depth is None:
         a.max_depth = 8
     if a.reference_time is None and a.reference_passes is None:
-        a.reference_time = QUICK_REFERENCE_TIME if a.quick else DEFAULT_REFERENCE_TIME
+        a.reference_time = (QUICK_REFERENCE_TIME if a.quick else
+                            _peer.DEFAULT_REFERENCE_TIME if a.mode == "peer"
+                            else DEFAULT_REFERENCE_TIME)
     a.reference_dir = Path(a.reference_dir) if a.reference_dir else root / "docs" / "bench_refs"
     a.out = Path(a.out) if a.out else root / "docs" / "benchmarks.md"
     if a.out.suffix.lower() != ".md":
@@ -891,6 +935,10 @@ def main(argv: list[str] | None = None) -> int:
         if a.mode == "profile":
             run_profile(a, argv, C.Log(a.quiet))
             return 0
+        if a.mode == "peer":
+            log = C.Log(a.quiet)
+            return _peer.run_peer(a, argv, log, lambda a_, path, scene: _get_reference(
+                a_, path, scene, path.stem, _sha256(path), log))
         res = run(a, argv)
     except (ValueError, OSError) as e:  # e.g. a malformed scene file: one line, status 2
         print(f"jaxvcm: error: bench: {' '.join(str(e).split())}", file=sys.stderr, flush=True)

@@ -72,6 +72,7 @@ from ._io import load_scene as load_scene
 from ._io import read_exr as read_exr
 from ._io import scene_from_dict as scene_from_dict
 from ._io import to_srgb8 as to_srgb8
+from ._io import water_grid as water_grid
 from ._io import write_outputs as write_outputs
 
 # ---- the sorted hash grid (for the grid benchmark)

@@ -3,6 +3,7 @@
 from ._export import FORMATS as FORMATS
 from ._export import export_scene as export_scene
 from ._export import scene_meshes as scene_meshes
+from ._export import water_grid as water_grid
 from ._export import water_mesh as water_mesh
 from ._images import atomic_path as atomic_path
 from ._images import atomic_paths as atomic_paths

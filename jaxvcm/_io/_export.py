@@ -66,10 +66,13 @@ def scene_meshes(scene: Scene, water_resolution: int = 128, sphere_subdivisions:
     return meshes
 
 
-def water_mesh(scene: Scene, n: int = 128):
-    """The water heightfield as an n x n vertex grid over the footprint, normals up."""
-    import trimesh
-
+def water_grid(scene: Scene, n: int = 128):
+    """The water heightfield tessellated as an n x n vertex grid over the footprint:
+    (vertices [n*n, 3], analytic unit normals [n*n, 3], triangles [2 (n-1)^2, 3]) as NumPy
+    float64 / int64 arrays. Vertex (i, j) = row i * n + j sits at x = linspace(xmin, xmax,
+    n)[i], z = linspace(zmin, zmax, n)[j], y = the surface height there; its normal is the
+    heightfield's exact normal normalize(-dh/dx, 1, -dh/dz) (pointing into the air), and
+    every triangle is wound so that its face normal points up (+y) too."""
     w = scene.water
     if n < 2:
         raise ValueError(f"water_resolution: must be >= 2, got {n}")
@@ -78,15 +81,27 @@ def water_mesh(scene: Scene, n: int = 128):
     xs = np.linspace(fp[0], fp[1], n)
     zs = np.linspace(fp[2], fp[3], n)
     X, Z = np.meshgrid(xs, zs, indexing="ij")  # X[i, j] = xs[i], Z[i, j] = zs[j]
-    h, _, _ = water_height(w, jnp.asarray(X, dt), jnp.asarray(Z, dt))
+    h, hx, hz = water_height(w, jnp.asarray(X, dt), jnp.asarray(Z, dt))
     V = np.stack([X, np.asarray(h, np.float64), Z], axis=-1).reshape(-1, 3)
+    N = np.stack([-np.asarray(hx, np.float64), np.ones_like(X), -np.asarray(hz, np.float64)],
+                 axis=-1).reshape(-1, 3)
+    N /= np.linalg.norm(N, axis=-1, keepdims=True)
     idx = np.arange(n * n).reshape(n, n)
     a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()  # (i, j), (i, j+1)
     cc, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()  # (i+1, j), (i+1, j+1)
     # (0, 0, dz) x (dx, 0, 0) = +y: triangles (i,j),(i,j+1),(i+1,j) and (i+1,j),(i,j+1),(i+1,j+1)
-    F = np.concatenate([np.stack([a, b, cc], 1), np.stack([cc, b, d], 1)])
+    F = np.concatenate([np.stack([a, b, cc], 1), np.stack([cc, b, d], 1)]).astype(np.int64)
+    return V, N, F
+
+
+def water_mesh(scene: Scene, n: int = 128):
+    """The water heightfield as an n x n vertex grid over the footprint, normals up
+    (`water_grid`'s vertices and triangles; the viewer's own smooth normals)."""
+    import trimesh
+
+    V, _, F = water_grid(scene, n)
     m = trimesh.Trimesh(V, F, process=False)
-    m.visual.face_colors = _rgba(scene, w.mat, -1)
+    m.visual.face_colors = _rgba(scene, scene.water.mat, -1)
     return m
 
 
