@@ -79,7 +79,8 @@ class RenderConfig:
     alpha:       radius reduction exponent (0 < alpha < 1).
     merge_capacity: static bound on hash-grid candidates per gather point; overflow is
                  flagged in the diagnostics and the host re-runs the pass with more room.
-    trace_split: the subpath tracer advances 1/trace_split of the lanes per round, taking
+    trace_split: the subpath tracer advances 1/trace_split of the lanes (at least
+                 `_queue.MIN_ROUND`) per round, taking
                  only lanes whose subpath is still alive (`_subpath.trace`); 1 = every
                  lane every round. Changes the work, not the result.
     mis_form:    "explicit" (log-space sums over all techniques, `_mis.py`) or "recursive"

@@ -15,22 +15,33 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+
+MIN_ROUND = 1024  # narrower rounds cost more in per-round overhead than they save
+
+
+def round_width(n: int, split: int) -> int:
+    """Items per round of a queue over n items: n / split, but not below MIN_ROUND (small
+    batches: a few wide rounds)."""
+    return max(-(-n // split), min(n, MIN_ROUND))
 
 
 def masked_map(fn: Callable, mask, args, fill, split: int):
     """`fn` vmapped over the items of `args` (pytree of arrays with leading item axes of
     `mask`'s shape) where `mask` holds; `fill` (pytree of scalars, like fn's output)
-    elsewhere. `split`: rounds per full sweep (width = items / split); 1 = one round of
-    every item."""
+    elsewhere. `split`: rounds per full sweep (`round_width`); 1 = one round of every
+    item."""
     shape = mask.shape
     M = mask.size
     flat = jax.tree.map(lambda a: a.reshape((M,) + a.shape[len(shape):]), args)
-    W = -(-M // split)
+    W = round_width(M, split)
     rounds = -(-M // W)
     order = jnp.nonzero(mask.reshape(M), size=rounds * W, fill_value=M)[0].reshape(rounds, W)
     count = jnp.sum(mask, dtype=jnp.int32)
-    out0 = jax.tree.map(lambda f: jnp.full((M,), f), fill)
     vfn = jax.vmap(fn)
+    shapes = jax.eval_shape(vfn, *jax.tree.map(lambda a: a[:1], flat))
+    out0 = jax.tree.map(lambda f, s: jnp.full((M,) + s.shape[1:], f, s.dtype), fill, shapes)
 
     def work(out, idx):
         g = jnp.minimum(idx, M - 1)
@@ -43,3 +54,44 @@ def masked_map(fn: Callable, mask, args, fill, split: int):
 
     out, _ = jax.lax.scan(body, out0, (jnp.arange(rounds, dtype=jnp.int32), order))
     return jax.tree.map(lambda o: o.reshape(shape), out)
+
+
+class Packed:
+    """A pytree of arrays with a common leading shape, held as one [*lead, F] array per
+    dtype (fewer, wider gathers and scatters in the queues' loops: one per dtype instead
+    of one per field)."""
+
+    def __init__(self, tree, lead: int):
+        leaves, self.treedef = jax.tree.flatten(tree)
+        self.lead = lead
+        self.meta = [(a.dtype, a.shape[lead:]) for a in leaves]
+        self.dtypes = sorted({str(m[0]) for m in self.meta})
+        self.arrays = {d: jnp.concatenate(
+            [a.reshape(a.shape[:lead] + (-1,)) for a in leaves if str(a.dtype) == d], axis=-1)
+            for d in self.dtypes}
+
+    def pack(self, tree) -> dict:
+        """Another tree of the same structure (any leading shape) -> {dtype: [..., F]}."""
+        leaves = jax.tree.leaves(tree)
+        lead = [a.ndim - len(m[1]) for a, m in zip(leaves, self.meta)][0]
+        return {d: jnp.concatenate([a.reshape(a.shape[:lead] + (-1,)) for a, m
+                                    in zip(leaves, self.meta) if str(m[0]) == d], axis=-1)
+                for d in self.dtypes}
+
+    def unpack(self, arrays: dict):
+        """{dtype: [..., F]} -> the tree (leading shape from the arrays)."""
+        offs = {d: 0 for d in self.dtypes}
+        leaves = []
+        for dt, shape in self.meta:
+            d = str(dt)
+            a = arrays[d]
+            n = int(np.prod(shape, dtype=np.int64))
+            leaves.append(a[..., offs[d]:offs[d] + n].reshape(a.shape[:-1] + shape))
+            offs[d] += n
+        return jax.tree.unflatten(self.treedef, leaves)
+
+    def column(self, leaf: int) -> tuple[str, int]:
+        """(dtype, column) of scalar leaf number `leaf` in the packed arrays."""
+        d = str(self.meta[leaf][0])
+        col = sum(int(np.prod(m[1], dtype=np.int64)) for m in self.meta[:leaf] if str(m[0]) == d)
+        return d, col

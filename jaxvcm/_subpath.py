@@ -31,6 +31,7 @@ from . import _materials as materials
 from . import _media as media
 from . import _vec as vec
 from ._config import RenderConfig
+from ._queue import Packed, round_width
 from ._scene import MAT_DIFFUSE, Scene, Water
 from ._vec import Vec3
 
@@ -240,7 +241,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     lane's y_0 / z_0 reverse pdf p(v_0 | v_1) (1 where v_1 does not exist).
 
     A queue of lanes, not a loop over depths: each round advances the first
-    L / cfg.trace_split lanes that are still alive by one vertex (gather, `step`, scatter
+    L / cfg.trace_split lanes (`_queue.round_width`) that are still alive by one vertex (gather, `step`, scatter
     back), so the work follows the vertices that exist, not L x n_steps. Rounds with no
     live lane left are skipped (`lax.cond` on a scalar); there are enough rounds for
     every lane to run every step, so nothing is ever dropped. Each lane sees the same
@@ -249,40 +250,52 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     static = isinstance(radiance, bool)
     L = s0.alive.shape[0]
     limit = jnp.full((L,), n_steps, jnp.int32) if limit is None else limit
-    W = -(-L // cfg.trace_split)  # lanes per round
+    W = round_width(L, cfg.trace_split)  # lanes per round
     rounds = -(-(n_steps * L) // W)
     vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, 0, 0, 0))
-    verts0 = _dead_records(s0, n_steps, scene.channels)
+    # records and lane states packed per dtype: one gather / scatter per dtype and round
+    rec_pack = Packed(_dead_records(s0, n_steps, scene.channels), 2)
+    state_pack = Packed(s0, 1)
+    rev_col = rec_pack.column(_leaf(rec_pack, "pdf_rev"))
+    alive_col = state_pack.column(_leaf(state_pack, "alive"))[1]
     rev0 = jnp.ones((L,), s0.pdf_w.dtype)
     k0 = jnp.zeros((L,), jnp.int32)  # vertices recorded so far, per lane
 
     def advance(carry):
-        s, k, verts, rev0 = carry
-        lane = jnp.nonzero(s.alive & (k < limit), size=W, fill_value=L)[0]
+        S, k, V, rev0 = carry
+        lane = jnp.nonzero(S["bool"][:, alive_col] & (k < limit), size=W, fill_value=L)[0]
         g = jnp.minimum(lane, L - 1)  # padding lanes compute lane L-1's step; dropped below
         kg = jnp.minimum(k[g], n_steps - 1)
-        s_g = jax.tree.map(lambda a: a[g], s)
+        s_g = state_pack.unpack({d: a[g] for d, a in S.items()})
         mode = radiance if static else radiance[g]
         s_new, v = vstep(scene, cfg, mode, kg, s_g, u[kg, g])
-        s = jax.tree.map(lambda a, b: a.at[lane].set(b, mode="drop"), s, s_new)
+        S = {d: S[d].at[lane].set(x, mode="drop") for d, x in state_pack.pack(s_new).items()}
         k = k.at[lane].add(1, mode="drop")
         # v_k's record at (k, lane); the pdf_rev it computed belongs to v_{k-1} (y_0 / z_0
         # for k = 0)
         row = jnp.where(lane < L, kg, n_steps)
         rec = v._replace(pdf_rev=jnp.ones_like(v.pdf_rev))  # set when v_{k+1} is traced
-        verts = jax.tree.map(lambda a, b: a.at[row, lane].set(b, mode="drop"), verts, rec)
+        V = {d: V[d].at[row, lane].set(x, mode="drop") for d, x in rec_pack.pack(rec).items()}
         prev = jnp.where((kg > 0) & (lane < L), kg - 1, n_steps)
-        verts = verts._replace(pdf_rev=verts.pdf_rev.at[prev, lane].set(v.pdf_rev, mode="drop"))
+        d, c = rev_col
+        V[d] = V[d].at[prev, lane, c].set(v.pdf_rev, mode="drop")
         rev0 = rev0.at[jnp.where(kg == 0, lane, L)].set(v.pdf_rev, mode="drop")
-        return s, k, verts, rev0
+        return S, k, V, rev0
 
     def body(carry, _):
-        s, k = carry[0], carry[1]
-        busy = jnp.any(s.alive & (k < limit))
+        S, k = carry[0], carry[1]
+        busy = jnp.any(S["bool"][:, alive_col] & (k < limit))
         return jax.lax.cond(busy, advance, lambda c: c, carry), None
 
-    (_, _, verts, rev0), _ = jax.lax.scan(body, (s0, k0, verts0, rev0), None, length=rounds)
-    return verts, rev0
+    carry = (state_pack.arrays, k0, rec_pack.arrays, rev0)
+    (_, _, V, rev0), _ = jax.lax.scan(body, carry, None, length=rounds)
+    return rec_pack.unpack(V), rev0
+
+
+def _leaf(packed: Packed, field: str) -> int:
+    """Leaf number of NamedTuple field `field` (a scalar per lane) in `packed`'s tree."""
+    t = jax.tree.unflatten(packed.treedef, list(range(len(packed.meta))))
+    return getattr(t, field)
 
 
 def _dead_records(s0: WalkState, n_steps: int, C: int) -> Vertex:

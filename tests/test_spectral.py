@@ -41,7 +41,7 @@ from . import _analytic as A
 
 @functools.partial(jax.jit, static_argnums=(2,))
 def _spectral_passes(ss, keys, config):
-    return jax.vmap(render_pass_spectral, in_axes=(None, 0, None))(ss, keys, config)
+    return jax.lax.map(lambda k: render_pass_spectral(ss, k, config), keys)  # see A._passes
 
 
 def spectral_stats(ss, config, passes, seed=0):
@@ -490,7 +490,7 @@ def _hero_flat_vs_off(ss, keys, config):
         hero, d1 = jaxvcm.render_pass(ss.at_wavelengths(lam, flat), k_render, config)
         bad = d0.nonfinite + d1.nonfinite
         return off, hero, bad, d0.merge_overflow | d1.merge_overflow
-    return jax.vmap(one)(keys)
+    return jax.lax.map(one, keys)
 
 
 @pytest.mark.parametrize("alg,view", [("bdpt", "under"), ("vcm", "above")])

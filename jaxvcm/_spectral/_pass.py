@@ -57,7 +57,8 @@ def render_pass_spectral(spectral: SpectralScene, key: PRNGKeyArray,
         def one(l1, n1):
             return render_pass(spectral.at_wavelengths(l1, n1), k_render, config, pass_index)
 
-        Ls, diags = jax.vmap(one)(lam[:, None], spectral.ior_at(lam))  # [C, H, W, 1]
+        # lax.map, not vmap: keeps the work queues' lax.cond skips (`_queue`)
+        Ls, diags = jax.lax.map(lambda a: one(*a), (lam[:, None], spectral.ior_at(lam)))
         L = jnp.moveaxis(Ls[..., 0], 0, -1)
         diag = jax.tree_util.tree_map(
             lambda x: jnp.any(x) if x.dtype == jnp.bool_ else jnp.sum(x).astype(x.dtype), diags)

@@ -52,8 +52,8 @@ scene's index at 550 nm). Two implementations:
   estimator of the hero. Reflections keep every channel (weight R_c / R_h). Paths that
   never refract keep all C wavelengths, so the cost is one pass and only refracted light
   loses the hero's variance reduction.
-* `dispersion="exact"`: every wavelength is traced on its OWN path: the pass vmaps the
-  unchanged `render_pass` over C single-wavelength scenes with the same core key. No
+* `dispersion="exact"`: every wavelength is traced on its OWN path: the pass maps the
+  unchanged `render_pass` (`lax.map`) over C single-wavelength scenes with the same core key. No
   wavelength ever follows a refraction computed for another, at C times the cost. It is
   the reference the hero form is tested against.
 
