@@ -36,6 +36,12 @@ def masked_map(fn: Callable, mask, args, fill, split: int):
     M = mask.size
     flat = jax.tree.map(lambda a: a.reshape((M,) + a.shape[len(shape):]), args)
     W = round_width(M, split)
+    if W >= M:  # one round: the dense map, no gathers, no cond
+        res = jax.vmap(fn)(*flat)
+        m = mask.reshape(M)
+        out = jax.tree.map(lambda r, f: jnp.where(m.reshape((M,) + (1,) * (r.ndim - 1)), r,
+                                                  jnp.asarray(f, r.dtype)), res, fill)
+        return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
     rounds = -(-M // W)
     order = jnp.nonzero(mask.reshape(M), size=rounds * W, fill_value=M)[0].reshape(rounds, W)
     count = jnp.sum(mask, dtype=jnp.int32)

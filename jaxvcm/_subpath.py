@@ -245,13 +245,16 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     back), so the work follows the vertices that exist, not L x n_steps. Rounds with no
     live lane left are skipped (`lax.cond` on a scalar); there are enough rounds for
     every lane to run every step, so nothing is ever dropped. Each lane sees the same
-    uniforms (u[its depth, its lane]) as in a loop over depths: the records do not depend
-    on the round width."""
+    uniforms (u[its depth, its lane]) as in a loop over depths: the live records do not
+    depend on the round width. A batch of at most one round per step (W >= L) runs the
+    plain loop over depths (`_trace_all`)."""
     static = isinstance(radiance, bool)
     L = s0.alive.shape[0]
     limit = jnp.full((L,), n_steps, jnp.int32) if limit is None else limit
     W = round_width(L, cfg.trace_split)  # lanes per round
     rounds = -(-(n_steps * L) // W)
+    if W >= L:
+        return _trace_all(scene, cfg, radiance, s0, u, n_steps)
     vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, 0, 0, 0))
     # records and lane states packed per dtype: one gather / scatter per dtype and round
     rec_pack = Packed(_dead_records(s0, n_steps, scene.channels), 2)
@@ -290,6 +293,25 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     carry = (state_pack.arrays, k0, rec_pack.arrays, rev0)
     (_, _, V, rev0), _ = jax.lax.scan(body, carry, None, length=rounds)
     return rec_pack.unpack(V), rev0
+
+
+def _trace_all(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int
+               ) -> tuple[Vertex, Array]:
+    """One round per step (every lane every step, dead or alive): the plain loop over
+    depths, without the queue's gathers and scatters. Dead lanes' records hold whatever
+    their masked-out steps computed (and light lanes of `trace_both` run n_cam steps)."""
+    static = isinstance(radiance, bool)
+    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, None, 0, 0))
+
+    def body(s, x):
+        i, ui = x
+        return vstep(scene, cfg, radiance, i, s, ui)
+
+    idx = jnp.arange(n_steps, dtype=jnp.int32)
+    _, verts = jax.lax.scan(body, s0, (idx, u[:n_steps]))
+    # pdf_rev was computed at v_{j+1} for v_j: shift it back by one vertex
+    rev_next = jnp.concatenate([verts.pdf_rev[1:], jnp.ones_like(verts.pdf_rev[:1])], axis=0)
+    return verts._replace(pdf_rev=rev_next), verts.pdf_rev[0]
 
 
 def _leaf(packed: Packed, field: str) -> int:

@@ -42,17 +42,17 @@ def test_packed_round_trip():
 
 
 def test_round_width_does_not_change_the_image():
-    # BDPT on the pool at 40x40: 3200 trace lanes, so trace_split 8 runs rounds of
+    # BDPT (depth 3) on the pool at 40x40: 3200 trace lanes, so trace_split 8 runs rounds of
     # MIN_ROUND lanes (a lane's vertices spread over several rounds) and the connection
-    # shadow rays several queue rounds; trace_split 1 advances every live lane every
-    # round. Each lane sees the same uniforms either way: the same image to float32
+    # shadow rays several queue rounds; trace_split 1 runs every lane at every
+    # step (the plain loop over depths). Each lane sees the same uniforms either way: the same image to float32
     # round-off (XLA may fuse differently for the two widths).
     scene = jaxvcm.load_scene("scenes/pool.toml", width=40, height=40)
     assert 2 * 40 * 40 > 2 * MIN_ROUND
     key = jaxvcm.pass_key(0, 0)
     out = []
     for split in (1, 8):
-        cfg = RenderConfig(algorithm="bdpt", max_depth=4, trace_split=split)
+        cfg = RenderConfig(algorithm="bdpt", max_depth=3, trace_split=split)
         img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(scene, key, cfg)
         out.append((np.asarray(img), int(diag.camera_vertices), int(diag.light_vertices)))
     assert out[0][1:] == out[1][1:]
