@@ -90,8 +90,9 @@ def test_technique_images_sum_to_the_bdpt_image():
     scene = jaxvcm.load_scene("scenes/pool.toml", width=12, height=12)
     cfg = RenderConfig(algorithm="bdpt", max_depth=5)
     key = jax.random.key(3)
-    tech, _ = jax.jit(technique_images, static_argnums=2)(scene, key, cfg)
-    img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(scene, key, cfg)
+    # both in one program (one compile; XLA shares the common work)
+    tech, (img, diag) = jax.jit(lambda s, k: (technique_images(s, k, cfg)[0],
+                                              jaxvcm.render_pass(s, k, cfg)))(scene, key)
     D = cfg.max_depth
     # every technique with k = s + t - 1 <= D is present: s = 0..D, t = 1..D+1
     expected = {(s, t) for s in range(0, D + 1) for t in range(1, D + 2)
