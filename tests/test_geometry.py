@@ -707,3 +707,84 @@ def test_inside_water(pools, dt):
     # a scene without water contains no water
     dry = jaxvcm.scene_from_dict(basin_doc(), dtype=dt)
     assert not np.any(np.asarray(G.inside_water(dry.water, as_vec(p, dt))))
+
+
+# ------------------------------------------------ shadow rays decided from their end points
+def shadow_segments(rng, n, water):
+    """Segments in and around the pool (the basin, the slab, above and below the water):
+    a third steep, a third shallow (within 5 degrees of horizontal, the march's case), a
+    third with an end on the surface's slab; ends on both sides of the surface."""
+    level = float(water.level)
+    a = float(np.sum(np.abs(np.asarray(water.amp, np.float64))))
+    m = n // 3
+    p = np.stack([rng.uniform(-1.2, 1.2, n), rng.uniform(level - 0.5, level + 0.5, n),
+                  rng.uniform(-1.2, 1.2, n)], 1)
+    q = np.stack([rng.uniform(-1.2, 1.2, n), rng.uniform(level - 0.5, level + 0.5, n),
+                  rng.uniform(-1.2, 1.2, n)], 1)
+    # shallow: q at p's height +- 5 degrees over the horizontal distance, inside the slab
+    horiz = np.linalg.norm((q - p)[m:2 * m, [0, 2]], axis=1)
+    p[m:2 * m, 1] = rng.uniform(level - 1.5 * a, level + 1.5 * a, m)
+    q[m:2 * m, 1] = p[m:2 * m, 1] + horiz * np.tan(rng.uniform(-0.09, 0.09, m))
+    q[2 * m:, 1] = rng.uniform(level - a, level + a, n - 2 * m)  # ends in the slab
+    dv = q - p
+    dist = np.linalg.norm(dv, axis=1)
+    return p, dv / dist[:, None], dist
+
+
+@jax.jit
+def _shadow_two_stage(scene, o, d, tmax):
+    blocked, undecided = jax.vmap(lambda o_, d_, t_: G.shadow_ends(scene, o_, d_, t_))(o, d, tmax)
+    march = jax.vmap(lambda o_, d_, t_: jnp.isfinite(G.intersect_water(
+        scene.water, o_, d_, 0.0, t_, 16, any_hit=True)))(o, d, tmax)
+    full = jax.vmap(lambda o_, d_, t_: G.unoccluded(scene, o_, d_, t_))(o, d, tmax)
+    return blocked, undecided, march, full
+
+
+@pytest.mark.parametrize("dt", DTYPES)
+def test_shadow_ends_equal_the_march(pools, dt):
+    # The classifier (issue 10, item 3) must give the one-stage answer on every segment:
+    # unoccluded == ~blocked & ~(undecided & march). Where it decides alone, the march
+    # agrees too (ends on opposite sides: the march sees the sign change at its last
+    # point; steep: f is monotone, so no change inside). Both outcomes of each kind occur,
+    # and the shallow third is what stays undecided.
+    scene = pools[np.dtype(dt).name]
+    rng = rng_for("shadow", np.dtype(dt).name)
+    n = 3 * N_RAYS
+    p, d, dist = shadow_segments(rng, n, scene.water)
+    blocked, undecided, march, full = (np.asarray(x) for x in _shadow_two_stage(
+        scene, as_vec(p, dt), as_vec(d, dt), jnp.asarray(dist, dt)))
+    two = ~blocked & ~(undecided & march)
+    np.testing.assert_array_equal(two, full)
+    decided = ~undecided
+    # every ray the classifier decides, the full march answers the same way
+    np.testing.assert_array_equal((~blocked)[decided], full[decided])
+    assert blocked.sum() > n // 10 and (~blocked & decided).sum() > n // 10
+    # undecided only among the shallow rays (|d_y| <= L |d_xz|, L = sum |A| |k| = 0.44)
+    L = float(G.water_slope_bound(scene.water))
+    steep = np.abs(d[:, 1]) > L * np.linalg.norm(d[:, [0, 2]], axis=1) * (1 + 1e-5)
+    assert not np.any(undecided & steep)
+    assert 0 < undecided.sum() < n // 2
+
+
+def test_unoccluded_queue_two_stage_equals_dense(pools):
+    # _connect._unoccluded with work queues (2 x 4096 rays, trace_split 8: rounds of 1024)
+    # runs the end-point classifier and then the march on the undecided rays only; with
+    # trace_split 1 it is the one-stage dense test. Same answer on every ray, and where
+    # `want` is False the answer is False.
+    from jaxvcm import _connect
+    scene = pools["float32"]
+    rng = rng_for("shadow-queue")
+    n = 2 * 4096
+    p, d, dist = shadow_segments(rng, n, scene.water)
+    o, w = as_vec(p, np.float32), as_vec(d, np.float32)
+    shape = (2, 4096)
+    o = jax.tree.map(lambda a: a.reshape(shape), o)
+    w = jax.tree.map(lambda a: a.reshape(shape), w)
+    tmax = jnp.asarray(dist, jnp.float32).reshape(shape)
+    want = jnp.asarray(rng.uniform(size=shape) < 0.7)
+    got = {s: np.asarray(jax.jit(lambda o_, w_, t_, m_: _connect._unoccluded(
+        scene, jaxvcm.RenderConfig(trace_split=s), o_, w_, t_, m_))(o, w, tmax, want))
+        for s in (1, 8)}
+    np.testing.assert_array_equal(got[8], got[1])
+    assert not np.any(got[8][~np.asarray(want)])
+    assert 0 < got[8].sum() < np.asarray(want).sum()
