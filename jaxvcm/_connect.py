@@ -29,7 +29,7 @@ from ._camera import camera_importance
 from ._config import RenderConfig
 from ._path import (Pdfs, both_dispersed, camera_partials, family_join_weights, family_weights,
                     light_partials, log_n_light_tracing, pdfs, reverse_pdf)
-from ._queue import masked_map, round_width
+from ._queue import masked_map
 from ._scene import LIGHT_SKY, LIGHT_SUN, Scene
 from ._subpath import PathEnds, rows
 from ._vec import Vec3
@@ -47,27 +47,9 @@ def _conv(target_medium, target_n: Vec3, w: Vec3, d, seg_water, scene: Scene, in
 
 
 def _unoccluded(scene: Scene, cfg: RenderConfig, o: Vec3, w: Vec3, tmax, want):
-    """Shadow rays [J, N], traced only where `want` holds (False elsewhere; `_queue`).
-
-    With work queues (more than one round) the test runs in two stages: every wanted ray
-    is classified from its end points (rects, spheres, and the water's `shadow_ends`:
-    outside the slab, ends on opposite sides, or steeper than the surface), and only the
-    shallow same-side rays that stay undecided go through the heightfield march. Same
-    answer as the one-stage test on every ray (tests/test_geometry.py)."""
-    def full(o_, w_, t_):
-        return geometry.unoccluded(scene, o_, w_, t_, cfg.march_steps)
-
-    if (not scene.water.enabled
-            or round_width(want.size, cfg.trace_split) >= want.size):
-        return masked_map(full, want, (o, w, tmax), False, cfg.trace_split)
-    # ---- stage 1: end points (no march) ----
-    blocked, undecided = masked_map(lambda o_, w_, t_: geometry.shadow_ends(scene, o_, w_, t_),
-                                    want, (o, w, tmax), (True, False), cfg.trace_split)
-    # ---- stage 2: the march, for the undecided rays only ----
-    hit = masked_map(lambda o_, w_, t_: jnp.isfinite(geometry.intersect_water(
-        scene.water, o_, w_, 0.0, t_, cfg.march_steps, any_hit=True)),
-        want & undecided, (o, w, tmax), False, cfg.trace_split)
-    return want & ~blocked & ~hit
+    """Shadow rays [J, N], traced only where `want` holds (False elsewhere; `_queue`)."""
+    return masked_map(lambda o_, w_, t_: geometry.unoccluded(scene, o_, w_, t_, cfg.march_steps),
+                      want, (o, w, tmax), False, cfg.trace_split)
 
 
 def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb,

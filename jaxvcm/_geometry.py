@@ -130,67 +130,6 @@ def _slab_interval(lo: Vec3, hi: Vec3, o: Vec3, d: Vec3, tmin, tmax):
     return t0, t1
 
 
-def water_slope_bound(w: Water) -> Array:
-    """L = sum_i |A_i| |k_i| >= |grad h| everywhere: the steepest slope of the surface."""
-    return jnp.sum(jnp.abs(w.amp) * jnp.sqrt(w.kx * w.kx + w.kz * w.kz))
-
-
-def _water_ends(w: Water, o: Vec3, d: Vec3, tmin, tmax):
-    """The ray clipped to the slab box [t0, t1c], f(t) = o_y + t d_y - h(x(t), z(t)), and
-    the sign f takes just after t0 (`sgn0`; an origin on the surface, f(t0) within its
-    rounding, takes the sign the ray moves towards). Shared by the intersector and the
-    shadow-ray classifier, so both see the same arithmetic."""
-    ylo, yhi = water_slab(w)
-    fp = w.footprint
-    lo = Vec3(fp[0], ylo, fp[2])
-    hi = Vec3(fp[1], yhi, fp[3])
-    t0, t1 = _slab_interval(lo, hi, o, d, tmin, tmax)
-    empty = ~(t0 < t1)
-    t1c = jnp.where(empty, t0 + 1.0, t1)
-
-    def f(t):
-        h, _, _ = water_height(w, o.x + t * d.x, o.z + t * d.z, grad=False)
-        return o.y + t * d.y - h
-
-    eps = jnp.finfo(o.x.dtype).eps
-    x0, z0 = o.x + t0 * d.x, o.z + t0 * d.z
-    _, hx0, hz0 = water_height(w, x0, z0)
-    df0 = d.y - (hx0 * d.x + hz0 * d.z)
-    ferr = 8 * eps * (jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level) + jnp.sum(
-        jnp.abs(w.amp) * (1 + jnp.abs(w.kx * x0) + jnp.abs(w.kz * z0) + jnp.abs(w.phase0))))
-
-    def sign0(f0):
-        return jnp.where(jnp.abs(f0) <= ferr, df0 >= 0, f0 >= 0)
-
-    return t0, t1c, empty, f, sign0
-
-
-def water_shadow_ends(w: Water, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, Array]:
-    """(blocked, undecided) for a shadow segment against the water surface, from its end
-    points alone (issue 10, item 3: the cheap heightfield):
-
-    - a segment that misses the slab box is not blocked by the water;
-    - end points on opposite sides of the surface (f changes sign between the clipped
-      ends t0, t1) are blocked: the interface is delta, so any crossing occludes;
-    - a ray steeper than the surface, |d_y| > L |d_xz| with L = sum |A| |k| >= |grad h|,
-      has df/dt = d_y - grad h . d_xz of one sign, so f is monotone on [t0, t1]: same-side
-      end points mean no crossing.
-
-    Only shallow segments with both ends on one side are `undecided` and need the march
-    (`intersect_water(any_hit=True)`), which gives the same answer on every segment the
-    classifier decides (the march includes both end points; tests/test_geometry.py)."""
-    t0, t1c, empty, f, sign0 = _water_ends(w, o, d, tmin, tmax)
-    # the march's last sample point, written as it computes it
-    t_end = t0 + (t1c - t0) * jnp.asarray(1.0, o.x.dtype)
-    s0 = sign0(f(t0))
-    crosses = (f(t_end) >= 0) != s0
-    blocked = ~empty & crosses
-    L = water_slope_bound(w)
-    steep = jnp.abs(d.y) > L * jnp.sqrt(d.x * d.x + d.z * d.z)
-    undecided = ~empty & ~crosses & ~steep
-    return blocked, undecided
-
-
 def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, refine: int = 6,
                     any_hit: bool = False) -> Array:
     """First crossing of the heightfield along the ray, to float32 precision.
@@ -207,13 +146,30 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
     A crossing pair closer together than one march segment (the ray grazing a crest by
     less than a segment) can be missed; with 16 segments the segment is at most ~18 cm
     against a shortest wavelength of ~29 cm in the shipped pools, so this only happens
-    for near-tangent grazing rays (tests bound how often). Shadow rays in the renderer
-    first go through `water_shadow_ends`, and march only where it cannot decide.
+    for near-tangent grazing rays (tests bound how often).
     """
-    t0, t1c, empty, f, sign0 = _water_ends(w, o, d, tmin, tmax)
+    ylo, yhi = water_slab(w)
+    fp = w.footprint
+    lo = Vec3(fp[0], ylo, fp[2])
+    hi = Vec3(fp[1], yhi, fp[3])
+    t0, t1 = _slab_interval(lo, hi, o, d, tmin, tmax)
+    empty = ~(t0 < t1)
+    t1c = jnp.where(empty, t0 + 1.0, t1)
+
+    def f(t):
+        h, _, _ = water_height(w, o.x + t * d.x, o.z + t * d.z, grad=False)
+        return o.y + t * d.y - h
+
     ts = t0 + (t1c - t0) * (jnp.arange(steps + 1, dtype=o.x.dtype) / steps)
     fs = f(ts)
-    sgn0 = sign0(fs[0])
+    # o on the surface (f(t0) within its rounding): use the sign the ray moves towards
+    eps = jnp.finfo(o.x.dtype).eps
+    x0, z0 = o.x + t0 * d.x, o.z + t0 * d.z
+    _, hx0, hz0 = water_height(w, x0, z0)
+    df0 = d.y - (hx0 * d.x + hz0 * d.z)
+    ferr = 8 * eps * (jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level) + jnp.sum(
+        jnp.abs(w.amp) * (1 + jnp.abs(w.kx * x0) + jnp.abs(w.kz * z0) + jnp.abs(w.phase0))))
+    sgn0 = jnp.where(jnp.abs(fs[0]) <= ferr, df0 >= 0, fs[0] >= 0)
     change = (fs[1:] >= 0) != sgn0
     found = jnp.any(change) & ~empty
     if any_hit:
@@ -259,10 +215,9 @@ def inside_water(w: Water, p: Vec3) -> Array:
 
 # ---------------------------------------------------------------- scene
 def closest_t(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16,
-              any_hit: bool = False, water: bool = True) -> tuple[Array, Array, Array]:
+              any_hit: bool = False) -> tuple[Array, Array, Array]:
     """(t, shape, index) of the closest hit over every shape kind (static dispatch); a miss
-    has t = inf, shape = -1. Shadow rays stop here (`unoccluded`). `water=False` leaves
-    the heightfield out (`shadow_ends`)."""
+    has t = inf, shape = -1. Shadow rays stop here (`unoccluded`)."""
     dt = o.x.dtype
     t = jnp.asarray(INF, dt)
     shape = jnp.asarray(SHAPE_NONE, jnp.int32)
@@ -281,7 +236,7 @@ def closest_t(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 1
         t = jnp.where(closer, tsph, t)
         shape = jnp.where(closer, SHAPE_SPHERE, shape)
         index = jnp.where(closer, isph.astype(jnp.int32), index)
-    if water and scene.water.enabled:
+    if scene.water.enabled:
         tw = intersect_water(scene.water, o, d, tmin, tmax, steps=steps, any_hit=any_hit)
         closer = tw < t
         t = jnp.where(closer, tw, t)
@@ -326,18 +281,3 @@ def unoccluded(scene: Scene, o: Vec3, d: Vec3, tmax, steps: int = 16) -> Array:
     """True if nothing is hit on (0, tmax): the shadow-ray test. Any surface blocks,
     the water surface included (NEE through a delta interface is impossible)."""
     return ~jnp.isfinite(closest_t(scene, o, d, 0.0, tmax, steps, any_hit=True)[0])
-
-
-def shadow_ends(scene: Scene, o: Vec3, d: Vec3, tmax) -> tuple[Array, Array]:
-    """The shadow-ray test on (0, tmax) without the heightfield march: (blocked,
-    undecided). Rects and spheres are tested exactly; the water by its end points
-    (`water_shadow_ends`). `undecided` rays need `intersect_water(any_hit=True)`; for every
-    other ray `~blocked` equals `unoccluded`."""
-    t = closest_t(scene, o, d, 0.0, tmax, any_hit=True, water=False)[0]
-    blocked = jnp.isfinite(t)
-    undecided = jnp.zeros_like(blocked)
-    if scene.water.enabled:
-        bw, und = water_shadow_ends(scene.water, o, d, 0.0, tmax)
-        blocked = blocked | bw
-        undecided = und & ~blocked
-    return blocked, undecided
