@@ -26,6 +26,9 @@ and Mitsuba's `volpath`, equal-time relative RMSE of each against a long jaxvcm 
 reference, the ratio of image means); `benchmarks/peer_mitsuba.py`. Without Mitsuba it
 prints one line and exits with status 2.
 
+`--startup`: cold and warm first pass of `jaxvcm render` in fresh processes, from an empty
+and from a warm persistent compilation cache (`benchmarks/startup.py`).
+
 `--profile`: seconds per stage of one pass (`jaxvcm.profile_stages`: camera rays, light
 emission, subpaths, MIS partials, each technique, merging, film; each stage its own
 compiled program) against the whole single-jit pass, one table per scene (stages x
@@ -54,6 +57,7 @@ from jaxvcm import __version__
 from . import _common as C
 from . import peer_mitsuba as _peer
 from . import spectral as _sp
+from . import startup as _st
 from . import vertex_merging as _vm
 
 PROG = "jaxvcm bench"
@@ -206,6 +210,14 @@ def _parser() -> argparse.ArgumentParser:
                    "own) and of the whole pass, over --throughput-passes passes (defaults: "
                    f"scene {', '.join(PROFILE_DEFAULT_SCENES)}, algorithms "
                    f"{' '.join(PROFILE_DEFAULT_ALGORITHMS)}, size {PROFILE_DEFAULT_SIZE})")
+    g = p.add_argument_group(
+        "startup", "cold and warm first pass of `jaxvcm render` in fresh processes "
+        "(benchmarks/startup.py)")
+    g.add_argument("--startup", action="store_true",
+                   help="time `jaxvcm render SCENE --passes 1` from an empty and from a warm "
+                        "persistent cache (first scene; default pt bdpt vcm, size 256)")
+    g.add_argument("--startup-runs", type=_int_ge(1), default=3, metavar="N",
+                   help="runs per algorithm with --startup, each with a fresh cache (3)")
     g = p.add_argument_group(
         "peer renderer (writes the 'Peer: Mitsuba 3' section of --out, replaced in place "
         "or appended, <out stem>_peer-mitsuba.json and peer_mitsuba.png next to it; "
@@ -788,6 +800,10 @@ def _settings(argv):
         a.mode = "profile"
         if a.throughput_passes < 1:
             raise _Usage("--throughput-passes: --profile needs at least 1")
+    if a.startup:
+        if a.mode:
+            raise _Usage(f"--startup: not allowed with --{a.mode}")
+        a.mode = "startup"
     if a.peer:
         if a.mode:
             raise _Usage(f"--peer: not allowed with --{a.mode}")
@@ -811,6 +827,7 @@ def _settings(argv):
                  "equal-time": _vm.ET_DEFAULT_ALGORITHMS,
                  "dispersion": list(_sp.DEFAULT_ALGORITHMS),
                  "profile": list(PROFILE_DEFAULT_ALGORITHMS),
+                 "startup": list(_st.DEFAULT_ALGORITHMS),
                  "peer": ["pt"]}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
@@ -822,6 +839,7 @@ def _settings(argv):
                    "equal-time": _vm.ET_DEFAULT_SCENES,
                    "dispersion": _sp.DEFAULT_SCENES,
                    "profile": PROFILE_DEFAULT_SCENES,
+                   "startup": PROFILE_DEFAULT_SCENES,
                    "peer": _peer.DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
     names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
                                                      for s in mode_scenes]
@@ -837,6 +855,7 @@ def _settings(argv):
                    "equal-time": _vm.ET_DEFAULT_SIZE,
                    "dispersion": _sp.DEFAULT_SIZE,
                    "profile": PROFILE_DEFAULT_SIZE,
+                   "startup": PROFILE_DEFAULT_SIZE,
                    "peer": _peer.DEFAULT_SIZE}.get(a.mode, DEFAULT_SIZE))
     if a.max_depth is None:
         a.max_depth = 8
@@ -934,6 +953,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "profile":
             run_profile(a, argv, C.Log(a.quiet))
+            return 0
+        if a.mode == "startup":
+            _st.run_startup(a, argv, a.scene_paths[0], C.Log(a.quiet))
             return 0
         if a.mode == "peer":
             log = C.Log(a.quiet)

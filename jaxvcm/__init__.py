@@ -68,8 +68,10 @@ from ._reference import sky_floor_radiance as sky_floor_radiance
 # ---- input / output
 from ._io import SceneError as SceneError
 from ._io import atomic_path as atomic_path
+from ._io import check_outputs as check_outputs
 from ._io import load_scene as load_scene
 from ._io import read_exr as read_exr
+from ._io import recover_outputs as recover_outputs
 from ._io import scene_from_dict as scene_from_dict
 from ._io import to_srgb8 as to_srgb8
 from ._io import water_grid as water_grid

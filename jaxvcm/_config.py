@@ -60,6 +60,7 @@ TECHNIQUES = {
 }
 MIS_HEURISTICS = ("balance", "power")
 MIS_FORMS = ("explicit", "recursive")
+MAX_DEPTH = 64  # path segments; subpaths are [depth, paths] arrays, so memory grows with it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,7 +90,7 @@ class RenderConfig:
     """
 
     algorithm: str = "pt"
-    max_depth: int = 8
+    max_depth: int = 8  # <= MAX_DEPTH
     rr_depth: int = 4
     mis: str = "power"
     march_steps: int = 16
@@ -116,8 +117,12 @@ class RenderConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")
-        if not (isinstance(self.radius, (int, float)) and self.radius > 0):
-            raise ValueError(f"config.radius: must be > 0, got {self.radius!r}")
+        if self.max_depth > MAX_DEPTH:
+            raise ValueError(f"config.max_depth: must be <= {MAX_DEPTH} (subpaths are stored "
+                             f"as [depth, paths] arrays), got {self.max_depth!r}")
+        if not (isinstance(self.radius, (int, float)) and 0 < self.radius <= 1):
+            raise ValueError(f"config.radius: must lie in (0, 1] (a fraction of the scene's "
+                             f"bounding radius), got {self.radius!r}")
         if not (isinstance(self.alpha, (int, float)) and 0 < self.alpha < 1):
             raise ValueError(f"config.alpha: must lie in (0, 1), got {self.alpha!r}")
         if not isinstance(self.merge_capacity, int) or self.merge_capacity < 1:

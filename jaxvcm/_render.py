@@ -108,16 +108,28 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
     """Average independent passes until `passes` are done or `time` seconds have elapsed (at
     least one pass). `run_pass(i) -> (estimate ndarray, nonfinite count)`; `to_image(mean)`
     turns the running mean into the image written; `meta(passes, seconds, nonfinite,
-    snapshot)` its JSON record. With `out`, writes EXR + PNG + JSON at the end, and with
-    `snapshot_every` (seconds) atomic snapshots along the way, so a killed render leaves
-    its last snapshot intact. Returns (mean estimate float64, passes done, nonfinite)."""
+    snapshot)` its JSON record, to which "warnings" (one line each) is added. With `out`,
+    writes EXR + PNG + JSON at the end, and with `snapshot_every` (seconds) atomic snapshots
+    along the way, so a killed render leaves its last snapshot intact. The first pass
+    includes the compilation: the progress line says "compiling" until it is done, and the
+    snapshot clock starts when it has finished. Before anything, `out`'s set is recovered
+    from an earlier killed render (`_io.recover_outputs`). Returns (mean estimate float64,
+    passes done, nonfinite)."""
     passes, time = check_budget(passes, time)
+    if out:
+        _io.recover_outputs(out)
     acc = None
     nonfinite = 0
     t0 = _time.perf_counter()
-    last_snap = t0
+    last_snap = None
     bar = _io.Progress(total=passes, time_budget=time, enabled=progress)
+    bar.start()
     i = 0
+
+    def record(n, seconds, image, snapshot):
+        m = meta(n, seconds, nonfinite, snapshot)
+        return {**m, "warnings": render_warnings(image, nonfinite)}
+
     try:
         while True:
             est, bad = run_pass(i)
@@ -128,23 +140,42 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
             now = _time.perf_counter()
             bar.update(i, now - t0)
             done = (passes is not None and i >= passes) or (time is not None and now - t0 >= time)
+            last_snap = now if last_snap is None else last_snap
             if out and snapshot_every is not None and not done and now - last_snap >= snapshot_every:
-                _io.write_outputs(out, to_image(acc / i).astype(np.float32),
-                                    meta(i, now - t0, nonfinite, True), exposure)
+                img = to_image(acc / i).astype(np.float32)
+                _io.write_outputs(out, img, record(i, now - t0, img, True), exposure)
                 last_snap = now
             if done:
                 break
     finally:
         bar.close()
     mean = acc / i
+    img = to_image(mean).astype(np.float32)
     if nonfinite:
         import warnings
 
-        warnings.warn(f"render: {nonfinite} non-finite path contributions were zeroed")
+        warnings.warn("; ".join(render_warnings(img, nonfinite)))
     if out:
-        _io.write_outputs(out, to_image(mean).astype(np.float32),
-                            meta(i, _time.perf_counter() - t0, nonfinite, False), exposure)
+        _io.write_outputs(out, img, record(i, _time.perf_counter() - t0, img, False), exposure)
     return mean, i, nonfinite
+
+
+ALL_NONFINITE = "every path contribution was non-finite"
+
+
+def render_warnings(image, nonfinite: int) -> list[str]:
+    """The one-line warnings of a finished render: contributions zeroed because they were
+    not finite (NaN/Inf, e.g. a scene at the edge of float32), and an image that is black
+    for that reason (`ALL_NONFINITE`; the CLI exits 3 on it) or entirely zero."""
+    out = []
+    black = not np.any(np.asarray(image) != 0)
+    if nonfinite:
+        out.append(f"{nonfinite} non-finite path contributions were zeroed")
+    if black and nonfinite:
+        out.append(f"the image is black: {ALL_NONFINITE}")
+    elif black:
+        out.append("the image is black: no path contribution reached the film")
+    return out
 
 
 def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,

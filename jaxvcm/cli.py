@@ -3,17 +3,23 @@
 Errors in the scene file or the arguments are reported as ONE line on stderr,
 `jaxvcm: error: <message>`, with exit status 2 and no traceback. An interrupted render
 (Ctrl-C) exits with 130; its last snapshot (see --snapshot-every) is already on disk.
+A render's warnings (non-finite contributions zeroed, a black image) are one line each,
+`jaxvcm: warning: <message>`, and are also in the JSON sidecar ("warnings"). A render in
+which every path contribution was non-finite writes its (black) outputs and exits with 3.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import importlib.util
+import json
 import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,11 +28,14 @@ import jaxvcm
 
 from . import _fit
 from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
-from ._config import ALGORITHMS, RenderConfig
+from ._config import ALGORITHMS, MAX_DEPTH, RenderConfig
 from ._fit import WATER_FIELDS
-from ._io import FORMATS, export_scene
+from ._io import FORMATS, check_writable, export_scene
+from ._io._scene_sections import MAX_PIXELS
+from ._render import ALL_NONFINITE
 from ._scene import LIGHT_NAMES, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES, PHASE_NAMES
 from ._spectral import WaterModel
+from ._spectral._scene import MAX_WAVELENGTHS
 
 PROG = "jaxvcm"
 
@@ -46,6 +55,19 @@ def _err(msg) -> int:
     return 2
 
 
+EXIT_ALL_NONFINITE = 3
+
+
+def _report_render(out: str) -> int:
+    """Print the warnings recorded in the render's JSON sidecar; the exit status (0, or
+    EXIT_ALL_NONFINITE when every contribution was non-finite)."""
+    with open(os.path.splitext(out)[0] + ".json", encoding="utf-8") as f:
+        warns = json.load(f).get("warnings", [])
+    for w in warns:
+        print(f"{PROG}: warning: {w}", file=sys.stderr, flush=True)
+    return EXIT_ALL_NONFINITE if any(ALL_NONFINITE in w for w in warns) else 0
+
+
 def _finite_float(positive=False):
     def conv(s):
         try:
@@ -60,14 +82,29 @@ def _finite_float(positive=False):
     return conv
 
 
-def _pos_int(lo=1):
+def _short(s: str) -> str:
+    return repr(s) if len(s) <= 24 else repr(s[:20] + "...") + f" ({len(s)} characters)"
+
+
+def _finite_float_in(lo, hi):
+    def conv(s):
+        v = _finite_float()(s)
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must lie in [{lo:g}, {hi:g}], got {_short(s)}")
+        return v
+    return conv
+
+
+def _pos_int(lo=1, hi=None):
     def conv(s):
         try:
             v = int(s)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+            raise argparse.ArgumentTypeError(f"expected an integer, got {_short(s)}") from None
         if v < lo:
-            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {v}")
+            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {_short(s)}")
+        if hi is not None and v > hi:
+            raise argparse.ArgumentTypeError(f"must be <= {hi}, got {_short(s)}")
         return v
     return conv
 
@@ -83,7 +120,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--algorithm", default="vcm", choices=ALGORITHMS,
                    help="vcm (default): all connections and merges; pt, lt, bdpt, ppm, bpm: "
                         "subsets of the same core")
-    r.add_argument("--radius", type=_finite_float(positive=True), default=None, metavar="R",
+    r.add_argument("--radius", type=_finite_float_in(1e-9, 1.0), default=None, metavar="R",
                    help="first-pass merging radius as a fraction of the scene's bounding "
                         "radius (ppm/bpm/vcm; default 0.005)")
     g = r.add_mutually_exclusive_group()
@@ -91,16 +128,16 @@ def _parser() -> argparse.ArgumentParser:
                    help="number of passes (1 sample per pixel each)")
     g.add_argument("--time", type=_finite_float(positive=True), metavar="SEC",
                    help="render for this many seconds (default: 60 if --passes is not given)")
-    r.add_argument("--seed", type=_pos_int(lo=0), default=0)
-    r.add_argument("--width", type=_pos_int(), metavar="W")
-    r.add_argument("--height", type=_pos_int(), metavar="H")
+    r.add_argument("--seed", type=_pos_int(lo=0, hi=2**32 - 1), default=0)
+    r.add_argument("--width", type=_pos_int(hi=MAX_PIXELS), metavar="W")
+    r.add_argument("--height", type=_pos_int(hi=MAX_PIXELS), metavar="H")
     r.add_argument("--out", metavar="FILE.exr",
                    help="output EXR (PNG and JSON go next to it); default out/<scene>.exr")
     r.add_argument("--snapshot-every", type=_finite_float(positive=True),
                    metavar="SEC", help="write atomic snapshots every SEC seconds")
-    r.add_argument("--exposure", type=_finite_float(), default=0.0, metavar="EV",
+    r.add_argument("--exposure", type=_finite_float_in(-64.0, 64.0), default=0.0, metavar="EV",
                    help="exposure of the PNG preview, in stops")
-    r.add_argument("--max-depth", type=_pos_int(), metavar="D",
+    r.add_argument("--max-depth", type=_pos_int(hi=MAX_DEPTH), metavar="D",
                    help="maximum path length in segments")
     r.add_argument("--quiet", action="store_true", help="no progress line")
     r.add_argument("--spectral", action="store_true",
@@ -108,7 +145,7 @@ def _parser() -> argparse.ArgumentParser:
                         "the water is a WaterModel (pure water unless --water), the scene's "
                         "RGB sigma_a / sigma_s are not used; --passes N (default 16), no --time, "
                         "no --snapshot-every")
-    r.add_argument("--wavelengths", type=_pos_int(), default=None, metavar="C",
+    r.add_argument("--wavelengths", type=_pos_int(hi=MAX_WAVELENGTHS), default=None, metavar="C",
                    help="wavelengths per pass with --spectral (default 8)")
     r.add_argument("--water", default=None, metavar="K=V[,K=V]",
                    help="WaterModel fields with --spectral, e.g. a_cdom=0.05,b_p=0.1 "
@@ -171,11 +208,13 @@ def _cmd_render_spectral(a, out, config) -> int:
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
     sp = jaxvcm.spectral_scene(scene, water, n_wavelengths=a.wavelengths or 8)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    check_writable(out)
     _enable_compilation_cache()
     t0 = time.perf_counter()
     try:
-        jaxvcm.render_spectral(sp, passes=passes, seed=a.seed, config=config, out=out,
-                               exposure=a.exposure)
+        with _quiet_nonfinite_warning():
+            jaxvcm.render_spectral(sp, passes=passes, seed=a.seed, config=config, out=out,
+                                   exposure=a.exposure)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr, flush=True)
         return 130
@@ -183,7 +222,15 @@ def _cmd_render_spectral(a, out, config) -> int:
         print(f"spectral: {passes} passes x {sp.n_wavelengths} wavelengths in "
               f"{time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     print(out)
-    return 0
+    return _report_render(out)
+
+
+@contextlib.contextmanager
+def _quiet_nonfinite_warning():
+    """The library's non-finite warning silenced: the CLI prints it as one line itself."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*non-finite path contributions")
+        yield
 
 
 def _cmd_render(a) -> int:
@@ -208,17 +255,20 @@ def _cmd_render(a) -> int:
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
     d = os.path.dirname(os.path.abspath(out))
     os.makedirs(d, exist_ok=True)
+    check_writable(out)
     _enable_compilation_cache()
     try:
-        jaxvcm.render(scene, algorithm=a.algorithm, passes=passes, time=tlimit, seed=a.seed,
-                      snapshot_every=a.snapshot_every, out=out, exposure=a.exposure,
-                      scene_path=a.scene, config=config, progress=not a.quiet)
+        with _quiet_nonfinite_warning():
+            jaxvcm.render(scene, algorithm=a.algorithm, passes=passes, time=tlimit,
+                          seed=a.seed, snapshot_every=a.snapshot_every, out=out,
+                          exposure=a.exposure, scene_path=a.scene, config=config,
+                          progress=not a.quiet)
     except KeyboardInterrupt:
         snap = " (last snapshot: " + out + ")" if a.snapshot_every and os.path.exists(out) else ""
         print(f"{PROG}: interrupted{snap}", file=sys.stderr, flush=True)
         return 130
     print(out)
-    return 0
+    return _report_render(out)
 
 
 def _fmt_vec(v) -> str:
@@ -303,6 +353,7 @@ def _cmd_export(a) -> int:
     d = os.path.dirname(os.path.abspath(a.out))
     if not os.path.isdir(d):
         raise FileNotFoundError(f"{a.out}: directory {d} does not exist")
+    check_writable(a.out)
     export_scene(scene, a.out)
     print(a.out)
     return 0

@@ -146,3 +146,38 @@ def test_report_merge_keeps_hand_written_text_and_adds_no_marker_from_the_header
     assert "keep me" in new and "second A" in new and "first A" not in new
     assert [m.group("tag") for m in _SECTION_RE.finditer(new)] == ["a", "b"]
     assert new.count("# jaxvcm benchmarks") == 1
+
+
+def test_bench_startup_mode(tmp_path, monkeypatch):
+    # --startup: defaults (pool, 256, pt bdpt vcm) and the table from the timed runs; the
+    # subprocess runs are replaced by fixed times and a sidecar with the first pass's
+    # seconds, so the table's cells must be exactly the medians of those
+    from benchmarks import startup as _st
+
+    a = _bench._settings(["--startup"])
+    assert a.mode == "startup" and a.size == 256 and a.algorithms == ["pt", "bdpt", "vcm"]
+    assert [p.stem for p in a.scene_paths] == ["pool"] and a.startup_runs == 3
+    assert _bench.main(["--startup", "--profile"]) == 2
+    a = _bench._settings(["--startup", "--algorithms", "vcm", "--startup-runs", "3",
+                          "--size", "8", "--out", str(tmp_path / "b.md")])
+    times = iter([1.0, 1.2, 0.8,  # import, 3 runs
+                  20.0, 2.0, 22.0, 2.5, 21.0, 2.2])  # (cold, warm) x 3 runs
+
+    def fake(args, env):
+        assert env["JAXVCM_CACHE_DIR"] and "optimization_level" not in env["XLA_FLAGS"]
+        t = next(times)
+        if "render" in args:
+            out = args[args.index("--out") + 1]
+            with open(out[:-4] + ".json", "w") as f:
+                json.dump({"seconds": t - 1.5}, f)
+        return t
+
+    monkeypatch.setattr(_st, "_timed", fake)
+    res = _st.run_startup(a, ["--startup"], a.scene_paths[0], lambda *x: None)
+    assert res["import_s"] == 1.0
+    row = _table((tmp_path / "b.md").read_text(), "algorithm")[0]
+    assert row["algorithm"] == "vcm"
+    assert row["cold process"] == "21.00 s" and row["warm process"] == "2.20 s"
+    assert row["cold first pass"] == "19.50 s" and row["warm first pass"] == "0.70 s"
+    assert json.loads((tmp_path / "b_startup.json").read_text())["rows"][0]["all"][
+        "warm_process_s"] == [2.0, 2.5, 2.2]

@@ -134,7 +134,8 @@ def test_write_outputs_atomic_on_failure(tmp_path, monkeypatch):
         _io.write_outputs(str(out), img * 2, {"k": 2})
     monkeypatch.undo()
     assert np.array_equal(_io.read_exr(out), img)  # the old file is intact
-    assert json.loads((tmp_path / "a.json").read_text()) == {"k": 1}
+    assert json.loads((tmp_path / "a.json").read_text())["k"] == 1
+    assert _io.check_outputs(str(out)) == []  # and the set still belongs together
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.json", "a.png"]
 
 
@@ -153,6 +154,38 @@ def test_progress_throttled():
     quiet.update(1, 0.1)
     quiet.close()
     assert s2.getvalue() == ""
+
+
+def test_progress_says_compiling_first():
+    # until the first pass (which includes the compilation) is done the line says so
+    s = io.StringIO()
+    bar = _io.Progress(total=4, time_budget=None, stream=s)
+    bar.start()
+    assert s.getvalue() == "\rrender: compiling (the first pass includes the compilation) ..."
+    bar.update(1, 30.0)
+    bar.close()
+    last = s.getvalue().split("\r")[-1]
+    assert last.startswith("render: 1/4 passes") and "compiling" not in last
+
+
+def test_snapshot_clock_starts_after_first_pass(tmp_path, monkeypatch):
+    # a first pass of 0.6 s (the compilation) then fast passes, snapshots every 0.3 s: the
+    # first snapshot comes 0.3 s after the first pass, never right after it (with the
+    # clock started at t0 it would be the 1-pass image: 0.6 s >= 0.3 s)
+    import jaxvcm._render as R
+
+    writes = []
+    monkeypatch.setattr(R._io, "write_outputs",
+                        lambda out, img, meta, exposure=0.0: writes.append(meta["passes"]))
+
+    def run_pass(i):
+        time.sleep(0.6 if i == 0 else 0.05)
+        return np.ones((2, 2, 3)), 0
+
+    R.progressive(run_pass, lambda m: m, lambda n, *a: {"passes": n}, passes=12,
+                  out=str(tmp_path / "s.exr"), snapshot_every=0.3, progress=False)
+    assert writes[-1] == 12 and len(writes) >= 2  # snapshots, then the final set
+    assert writes[0] >= 2
 
 
 # ------------------------------------------------------------------ render
@@ -244,6 +277,9 @@ def test_render_sigkill_leaves_snapshot(tmp_path):
     log.unlink()
     _check_dir_after_kill(tmp_path)
     _check_outputs(out, snapshot=True)
+    _io.recover_outputs(str(out))  # what the next render to `out` does first
+    assert _io.check_outputs(str(out)) == []
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
 def test_render_sigint_exits_130_with_snapshot(tmp_path):
@@ -273,6 +309,7 @@ def test_render_sigint_exits_130_with_snapshot(tmp_path):
     _check_dir_after_kill(tmp_path)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # cleaned up
     _check_outputs(out, snapshot=True)
+    assert _io.check_outputs(str(out)) == []  # SIGINT is held back: the set is whole
 
 
 # ------------------------------------------------------------------ export / info

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import math
 import os
-import tomllib
 
 import numpy as np
 
-from .._config import ALGORITHMS, RenderConfig
+from .._config import ALGORITHMS, MAX_DEPTH, RenderConfig
 from .._io._scene_file import _Ctx, scene_from_dict
+from .._io._scene_sections import IOR, MAX_PIXELS
+from .._io._toml import Range, key_path, read_toml
+from .._spectral._scene import MAX_WAVELENGTHS
 from .._spectral import spectral_scene
 from .._spectral import WaterModel
 from ._colour import SPACES
@@ -83,13 +85,7 @@ def load_fit_config(path) -> dict:
             raise FitConfigError(f"{self.src}: {field}: {msg}")
 
     ctx = Ctx(src)
-    try:
-        with open(src, "rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise FitConfigError(f"{src}: file not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise FitConfigError(f"{src}: TOML syntax: {e}") from None
+    doc = read_toml(src, FitConfigError)
     mode = ctx.string(doc.get("mode", "rgb"), "mode", ("rgb", "spectral"))
     spectral = mode == "spectral"
     top = {"mode", "space", "render", "solver", "init", "truth", "scenes", "regions"}
@@ -105,17 +101,17 @@ def load_fit_config(path) -> dict:
     ctx.table(r, {"algorithm", "max_depth", "rr_depth", "radius", "passes", "seed", "width",
                   "height"}, set(), "render")
     cfg = {"algorithm": ctx.string(r.get("algorithm", "pt"), "render.algorithm", ALGORITHMS)}
-    for k in ("max_depth", "rr_depth"):
+    for k, hi in (("max_depth", MAX_DEPTH), ("rr_depth", None)):
         if k in r:
-            cfg[k] = ctx.integer(r[k], f"render.{k}")
+            cfg[k] = ctx.integer(r[k], f"render.{k}", hi=hi)
     cfg.setdefault("max_depth", 6)
     if "radius" in r:
-        cfg["radius"] = ctx.number(r["radius"], "render.radius", positive=True)
+        cfg["radius"] = ctx.number(r["radius"], "render.radius", Range(0.0, 1.0, lo_open=True))
     config = RenderConfig(**cfg)
     passes = ctx.integer(r.get("passes", 16), "render.passes")
-    seed = ctx.integer(r.get("seed", 0), "render.seed", lo=0)
-    width = ctx.integer(r["width"], "render.width") if "width" in r else None
-    height = ctx.integer(r["height"], "render.height") if "height" in r else None
+    seed = ctx.integer(r.get("seed", 0), "render.seed", lo=0, hi=2**32 - 1)
+    width = ctx.integer(r["width"], "render.width", hi=MAX_PIXELS) if "width" in r else None
+    height = ctx.integer(r["height"], "render.height", hi=MAX_PIXELS) if "height" in r else None
     s = doc.get("solver", {})
     ctx.table(s, {"max_steps", "rtol", "atol"} | (set() if spectral else {"free"}), set(),
               "solver")
@@ -149,23 +145,20 @@ def load_fit_config(path) -> dict:
     base = os.path.dirname(os.path.abspath(src))
     scenes = {}
     for name, e in sc.items():
-        ctx.table(e, {"file", "override"}, {"file"}, f"scenes.{name}")
-        f = ctx.string(e["file"], f"scenes.{name}.file")
+        sf = key_path("scenes", name)
+        ctx.table(e, {"file", "override"}, {"file"}, sf)
+        f = ctx.string(e["file"], f"{sf}.file")
         fp = f if os.path.isabs(f) else os.path.join(base, f)
         fshow = os.path.relpath(fp) if not os.path.isabs(f) else f
-        try:
-            with open(fp, "rb") as fh:
-                sdoc = tomllib.load(fh)
-        except FileNotFoundError:
-            ctx.fail(f"scenes.{name}.file", f"file not found: {fshow}")
-        except tomllib.TOMLDecodeError as err:
-            raise FitConfigError(f"{fshow}: TOML syntax: {err}") from None
+        if not os.path.exists(fp):
+            ctx.fail(f"{sf}.file", f"file not found: {fshow}")
+        sdoc = read_toml(fshow if not os.path.isabs(f) else fp, FitConfigError)
         ov = e.get("override", {})
         if not isinstance(ov, dict):
-            ctx.fail(f"scenes.{name}.override", "expected a table")
+            ctx.fail(f"{sf}.override", "expected a table")
         scene = scene_from_dict(_deep_merge(sdoc, ov), fshow, width=width, height=height)
         if not scene.water.enabled:
-            ctx.fail(f"scenes.{name}", "the scene has no water to fit")
+            ctx.fail(sf, "the scene has no water to fit")
         scenes[name] = scene
 
     regs = doc["regions"]
@@ -242,12 +235,13 @@ def _spectral_settings(ctx, doc) -> dict:
     spt = doc.get("spectral", {})
     ctx.table(spt, {"n_wavelengths", "ior", "phase", "sun", "sun_temperature", "dispersion"},
               set(), "spectral")
-    kw = {"n_wavelengths": ctx.integer(spt.get("n_wavelengths", 8), "spectral.n_wavelengths")}
+    kw = {"n_wavelengths": ctx.integer(spt.get("n_wavelengths", 8), "spectral.n_wavelengths",
+                                       hi=MAX_WAVELENGTHS)}
     ior = spt.get("ior", "data")
     if isinstance(ior, str):
         kw["ior"] = ctx.string(ior, "spectral.ior", ("data", "scene"))
     else:
-        kw["ior"] = ctx.number(ior, "spectral.ior", positive=True)
+        kw["ior"] = ctx.number(ior, "spectral.ior", IOR)
     kw["phase"] = ctx.string(spt.get("phase", "auto"), "spectral.phase", ("auto", "scene"))
     kw["sun"] = ctx.string(spt.get("sun", "D65"), "spectral.sun", ("D65", "blackbody"))
     kw["sun_temperature"] = ctx.number(spt.get("sun_temperature", 5778.0),

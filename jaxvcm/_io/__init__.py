@@ -5,10 +5,14 @@ from ._export import export_scene as export_scene
 from ._export import scene_meshes as scene_meshes
 from ._export import water_grid as water_grid
 from ._export import water_mesh as water_mesh
+from ._images import OutputError as OutputError
 from ._images import atomic_path as atomic_path
 from ._images import atomic_paths as atomic_paths
+from ._images import check_outputs as check_outputs
+from ._images import check_writable as check_writable
 from ._images import png_bytes as png_bytes
 from ._images import read_exr as read_exr
+from ._images import recover_outputs as recover_outputs
 from ._images import to_srgb8 as to_srgb8
 from ._images import write_exr as write_exr
 from ._images import write_outputs as write_outputs

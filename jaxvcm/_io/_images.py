@@ -1,24 +1,44 @@
 """Film output: linear float32 EXR, sRGB PNG preview, JSON sidecar (all written atomically).
 
 Every file is first written to a hidden temp file in the destination directory
-(`.NAME.tmpXXXX`) and then moved over the destination with `os.replace`, so a process
+(`.NAME.tmp<pid>.XXXX`) and then moved over the destination with `os.replace`, so a process
 killed at any moment leaves either the previous complete file or the new complete file,
 never a truncated one. A temp file orphaned by a kill starts with a dot and does not end
-in the real extension, so it cannot be mistaken for an output.
+in the real extension, so it cannot be mistaken for an output; it names the process that
+made it, and `recover_outputs` (run at the start of the next render to the same output)
+removes those whose process is gone.
+
+The set OUT.exr + OUT.png + OUT.json (`write_outputs`) cannot be replaced in one atomic
+step, so the EXR is the record: it is renamed first and carries the whole JSON record in
+its header (attribute "jaxvcm"); the PNG follows and the JSON, which names the EXR's and
+the PNG's SHA-256, comes last. A kill between the renames leaves a newer EXR beside an
+older PNG / JSON; `check_outputs` sees that, and `recover_outputs` rewrites the PNG and
+the JSON from the EXR, so the next start (or a reader who calls it) has a consistent set.
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
+import hashlib
 import io
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["read_exr", "write_outputs", "atomic_path", "write_exr", "write_png"]
+__all__ = ["read_exr", "write_outputs", "atomic_path", "write_exr", "write_png",
+           "check_outputs", "recover_outputs", "OutputError"]
+
+META_ATTR = "jaxvcm"  # the EXR header attribute holding the JSON record
+
+
+class OutputError(OSError):
+    """An output that cannot be written; str() is one line naming the user's path (never
+    the temp file next to it)."""
 
 
 def _read_umask() -> int:
@@ -30,9 +50,16 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
+def _tmp_prefix(path: str) -> str:
+    return f".{os.path.basename(path)}.tmp"
+
+
 def _mkstemp_near(path: str) -> str:
-    d, base = os.path.split(path)
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=f".{base}.tmp")
+    d = os.path.dirname(path)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=d, prefix=f"{_tmp_prefix(path)}{os.getpid()}.")
+    except OSError as e:
+        raise OutputError(f"{path}: cannot write: {e.strerror or e}") from None
     try:
         os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual mode
     except (OSError, AttributeError):
@@ -79,17 +106,26 @@ def atomic_paths(paths: list[str]) -> Iterator[list[str]]:
     any failure remove them all and leave the destinations untouched. SIGINT/SIGTERM are
     held back for the duration (a Ctrl-C lands right after the files are complete), so
     only SIGKILL can interrupt it, and that leaves at most hidden `.NAME.tmp*` files."""
-    paths = [os.path.abspath(os.fspath(p)) for p in paths]
+    shown = [os.fspath(p) for p in paths]
+    paths = [os.path.abspath(p) for p in shown]
     tmps: list[str] = []
     with _signals_held():
         try:
-            for p in paths:
+            for p in shown:
                 tmps.append(_mkstemp_near(p))
-            yield list(tmps)
+            try:
+                yield list(tmps)
+            except OSError as e:
+                if isinstance(e, OutputError):
+                    raise
+                raise OutputError(f"{shown[0]}: cannot write: {e.strerror or e}") from None
             for t in tmps:
                 _fsync_file(t)
-            for t, p in zip(tmps, paths):
-                os.replace(t, p)
+            for t, p, sp in zip(tmps, paths, shown):
+                try:
+                    os.replace(t, p)
+                except OSError as e:
+                    raise OutputError(f"{sp}: cannot write: {e.strerror or e}") from None
         except BaseException:
             for t in tmps:
                 with contextlib.suppress(OSError):
@@ -103,6 +139,12 @@ def atomic_path(path: str) -> Iterator[str]:
     (including KeyboardInterrupt) remove it and leave `path` untouched."""
     with atomic_paths([path]) as (tmp,):
         yield tmp
+
+
+def check_writable(path: str) -> None:
+    """Raise `OutputError` (one line naming `path`) now if `path` cannot be written the way
+    the outputs are (a temp file beside it), rather than after a long render."""
+    os.unlink(_mkstemp_near(os.fspath(path)))
 
 
 def _fsync_file(path: str) -> None:
@@ -208,26 +250,123 @@ def _json_default(o):
     return str(o)
 
 
-def write_outputs(out_path: str, image, meta: dict, exposure: float = 0.0) -> None:
-    """Write `out_path` (.exr, linear float32), the PNG preview (`.png`, image * 2**exposure,
-    sRGB, 8-bit) and the JSON sidecar (`.json`, `meta`) next to it. The directory must exist.
+def _sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
-    Each file is replaced atomically. Everything is encoded and written to temp files
-    first and the three renames then follow each other immediately (with SIGINT/SIGTERM
-    held back), so a killed process leaves a consistent, complete set of files."""
-    import OpenEXR
 
+def _set_paths(out_path: str) -> tuple[str, str, str]:
     out_path = os.fspath(out_path)
     stem, ext = os.path.splitext(out_path)
     if ext.lower() != ".exr":
         raise ValueError(f"out: must end in .exr, got {out_path!r}")
+    return out_path, stem + ".png", stem + ".json"
+
+
+def write_outputs(out_path: str, image, meta: dict, exposure: float = 0.0) -> None:
+    """Write `out_path` (.exr, linear float32), the PNG preview (`.png`, image * 2**exposure,
+    sRGB, 8-bit) and the JSON sidecar (`.json`, `meta` plus "exposure" and "files": the
+    SHA-256 of the EXR and the PNG) next to it. The directory must exist.
+
+    Everything is encoded and written to temp files first; the renames follow each other
+    immediately (SIGINT/SIGTERM held back) in the order EXR, PNG, JSON. The EXR holds the
+    record in its header, so even a SIGKILL between two renames leaves a set that
+    `recover_outputs` makes consistent (the module's docstring)."""
+    import OpenEXR
+
+    p_exr, p_png, p_json = _set_paths(out_path)
     a = _check_image(image)
     png = png_bytes(a, exposure)
-    text = _json_text(meta).encode("utf-8")
-    with atomic_paths([out_path, stem + ".png", stem + ".json"]) as (t_exr, t_png, t_json):
-        OpenEXR.File(_exr_header(None), _channels(a)).write(t_exr)
+    meta = {**meta, "exposure": float(exposure)}
+    with atomic_paths([p_exr, p_png, p_json]) as (t_exr, t_png, t_json):
+        OpenEXR.File(_exr_header({META_ATTR: _json_text(meta)}), _channels(a)).write(t_exr)
         _write_bytes(t_png, png)
-        _write_bytes(t_json, text)
+        files = {"exr_sha256": _sha256(t_exr), "png_sha256": hashlib.sha256(png).hexdigest()}
+        _write_bytes(t_json, _json_text({**meta, "files": files}).encode("utf-8"))
+
+
+def check_outputs(out_path: str) -> list[str]:
+    """What is wrong with the set `out_path` (.exr) + .png + .json: [] when all three exist,
+    the JSON names the EXR's and the PNG's SHA-256 and agrees with the record in the EXR's
+    header; otherwise one line per problem."""
+    p_exr, p_png, p_json = _set_paths(out_path)
+    missing = [p for p in (p_exr, p_png, p_json) if not os.path.isfile(p)]
+    if missing:
+        return [f"{p}: missing" for p in missing]
+    try:
+        with open(p_json, encoding="utf-8") as f:
+            meta = json.load(f)
+        files = meta.pop("files")
+    except (OSError, ValueError, KeyError, AttributeError) as e:
+        return [f"{p_json}: not a jaxvcm record ({e})"]
+    problems = []
+    if files.get("exr_sha256") != _sha256(p_exr):
+        problems.append(f"{p_exr}: not the EXR that {p_json} describes")
+    if files.get("png_sha256") != _sha256(p_png):
+        problems.append(f"{p_png}: not the PNG that {p_json} describes")
+    if not problems and _exr_record(p_exr) != meta:
+        problems.append(f"{p_json}: differs from the record in {p_exr}")
+    return problems
+
+
+def _exr_record(path: str) -> dict | None:
+    import OpenEXR
+
+    try:
+        text = OpenEXR.File(path).header().get(META_ATTR)
+        return json.loads(text) if isinstance(text, str) else None
+    except Exception:  # noqa: BLE001 (an unreadable or foreign EXR: no record)
+        return None
+
+
+def _stale_temps(path: str) -> list[str]:
+    """Temp files next to `path` made by processes that no longer run."""
+    pre = _tmp_prefix(path)
+    stale = []
+    for t in glob.glob(os.path.join(glob.escape(os.path.dirname(path) or "."),
+                                    glob.escape(pre) + "*")):
+        m = re.fullmatch(r"(\d+)\..*", os.path.basename(t)[len(pre):])
+        if m is None:
+            continue
+        pid = int(m.group(1))
+        if pid == os.getpid():
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            stale.append(t)
+        except (PermissionError, OverflowError, ValueError):
+            pass  # alive (another user's) or not a pid
+    return stale
+
+
+def recover_outputs(out_path: str) -> list[str]:
+    """Make the set at `out_path` consistent after a killed writer, and tidy up: remove the
+    temp files of dead processes, and if the PNG or JSON is not the one for the EXR (a kill
+    between the renames), rewrite both from the record in the EXR's header. Returns what
+    was done, one line each (empty when nothing was needed)."""
+    p_exr, p_png, p_json = _set_paths(out_path)
+    done = []
+    for p in (p_exr, p_png, p_json):
+        for t in _stale_temps(os.path.abspath(p)):
+            with contextlib.suppress(OSError):
+                os.unlink(t)
+                done.append(f"removed {t}")
+    if os.path.isfile(p_exr) and check_outputs(p_exr):
+        meta = _exr_record(p_exr)
+        if meta is not None:
+            a = read_exr(p_exr)
+            png = png_bytes(a, meta.get("exposure", 0.0))
+            with atomic_paths([p_png, p_json]) as (t_png, t_json):
+                _write_bytes(t_png, png)
+                files = {"exr_sha256": _sha256(p_exr),
+                         "png_sha256": hashlib.sha256(png).hexdigest()}
+                _write_bytes(t_json, _json_text({**meta, "files": files}).encode("utf-8"))
+            done.append(f"rewrote {p_png} and {p_json} from {p_exr}")
+    return done
 
 
 def read_exr(path: str) -> np.ndarray:

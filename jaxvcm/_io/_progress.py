@@ -55,6 +55,22 @@ class Progress:
             return
         self._drawn = True
 
+    def start(self) -> None:
+        """The line shown until the first pass is done: it compiles the pass (seconds to a
+        minute from an empty cache), so say so rather than show 0 passes/s."""
+        if not self.enabled:
+            return
+        line = "render: compiling (the first pass includes the compilation) ..."
+        self._width = len(line)
+        try:
+            s = self._out()
+            s.write("\r" + line)
+            s.flush()
+        except (OSError, ValueError):
+            self.enabled = False
+            return
+        self._drawn = True
+
     def update(self, i: int, elapsed: float) -> None:
         if not self.enabled:
             return

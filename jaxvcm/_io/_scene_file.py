@@ -19,6 +19,26 @@ Schema (metres, y up; "spectrum" = a number or a list of C numbers):
   [[lights]] type = "sun":    direction (the way light travels), irradiance
   [[lights]] type = "sky":    radiance                   (directions with y > 0 only)
 
+Valid ranges (anything outside is a one-line error naming the field; the constants are in
+`_toml.py` and `_scene_sections.py`). They keep every derived value finite in float32:
+
+  coordinates (positions, centers, targets, basin min/max, footprint, level, floor,
+      wave amplitude)                 |x| <= 1e6 m
+  sizes, radii                        1e-6 m .. 1e6 m, and >= 1e-6 x the scene's extent
+                                      (smaller shapes are not resolved in float32)
+  directions (normal, up, direction)  not all zero; a rect's `up` not parallel to its normal
+  camera.fov                          0.01 .. 179 degrees (vertical)
+  camera.width, camera.height         1 .. 16384 (also --width / --height)
+  albedo (materials and emitters)     0 .. 1
+  radiance, irradiance                0 .. 1e15 (> 0 in some channel)
+  sigma_a, sigma_s                    0 .. 1e6 1/m
+  ior                                 1 .. 3 (1: an index-matched boundary, no refraction)
+  wave numbers kx, kz                 |k| <= 1e4 rad/m; phase |p| <= 1e6 rad
+  g (hg)                              -0.999 .. 0.999;  b (water phase 1 + b cos^2): 0 .. 10
+  any other number                    |x| <= 1e6
+Integers of any size and floats beyond float64 (inf, nan) are rejected the same way. The file
+must be UTF-8 TOML; keys that are not bare are shown quoted in messages.
+
 The file is read and its values checked in `_toml.py` (`SceneError`, `_Ctx`); each section
 is parsed in `_scene_sections.py`, and `scene_from_dict` below puts the parts together.
 """
@@ -28,6 +48,7 @@ from __future__ import annotations
 import math
 import os
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -37,7 +58,7 @@ from .._scene import (
 from ._scene_sections import (
     _Parts, parse_camera, parse_lights, parse_materials, parse_shapes, parse_water,
 )
-from ._toml import SceneError, _Ctx, read_toml
+from ._toml import REL_SIZE, SceneError, _Ctx, read_toml
 
 __all__ = ["SceneError", "load_scene", "scene_from_dict"]
 
@@ -57,14 +78,41 @@ def scene_from_dict(doc: dict, src: str = "<scene>", *, width=None, height=None,
     ctx.table(doc, {"name", "camera", "materials", "shapes", "water", "lights"},
               {"camera", "lights"}, "")
     name = ctx.string(doc.get("name", os.path.splitext(os.path.basename(src))[0]), "name")
-    cam = parse_camera(ctx, doc["camera"], width, height)
-    parts = _Parts()
-    parse_materials(ctx, doc.get("materials", {}), parts)
-    parse_shapes(ctx, doc.get("shapes", []), parts)
-    parse_lights(ctx, doc["lights"], parts)
-    water = parse_water(ctx, doc.get("water"), parts)
-    bounds = _bounds(cam["pos"], parts, water)
-    return _to_scene(cam, parts, water, bounds, _light_power(parts, bounds), name, dtype)
+    # The ranges of `_toml` keep every value below finite; a floating-point exception here
+    # is a gap in them, reported as one line rather than as a NumPy warning.
+    with np.errstate(over="raise", invalid="raise", divide="raise", under="ignore"):
+        try:
+            cam = parse_camera(ctx, doc["camera"], width, height)
+            parts = _Parts()
+            parse_materials(ctx, doc.get("materials", {}), parts)
+            parse_shapes(ctx, doc.get("shapes", []), parts)
+            parse_lights(ctx, doc["lights"], parts)
+            water = parse_water(ctx, doc.get("water"), parts)
+            bounds = _bounds(cam["pos"], parts, water)
+            _check_sizes(ctx, parts, bounds)
+            power = _light_power(parts, bounds)
+        except FloatingPointError as e:  # pragma: no cover (no known case)
+            ctx.fail("scene", f"a derived value is out of range ({e})")
+    return _check_finite(ctx, _to_scene(cam, parts, water, bounds, power, name, dtype))
+
+
+def _check_sizes(ctx: _Ctx, parts: _Parts, bounds: np.ndarray) -> None:
+    """Every shape at least REL_SIZE x the scene's extent: smaller ones are not resolved by
+    float32 positions at that scale (a 1e-308 m light would have area 0 and no normal)."""
+    extent = float(np.linalg.norm(bounds[1] - bounds[0]))
+    for field, size in parts.sizes:
+        if size < REL_SIZE * extent:
+            ctx.fail(field, f"{size:g} m is below {REL_SIZE:g} x the scene's extent "
+                            f"({extent:g} m): too small to resolve in float32")
+
+
+def _check_finite(ctx: _Ctx, scene: Scene) -> Scene:
+    """Every array of the scene finite (float32 overflow would show here), else one line
+    naming the array."""
+    for path, leaf in jax.tree_util.tree_flatten_with_path(scene)[0]:
+        if not bool(jnp.all(jnp.isfinite(leaf))):  # pragma: no cover (no known case)
+            ctx.fail("scene" + jax.tree_util.keystr(path), "not finite in float32")
+    return scene
 
 
 def _bounds(pos: np.ndarray, parts: _Parts, water: dict) -> np.ndarray:

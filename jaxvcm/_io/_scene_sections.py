@@ -18,11 +18,24 @@ from .._scene import (
     LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR,
     PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER,
 )
-from ._toml import CHANNELS, _Ctx
+from ._toml import CHANNELS, COORD, SIZE, Range, _Ctx, key_path
+
+# ---- the ranges of the scene format's numbers (the schema table in `_scene_file.py`) ----
+FOV = Range(0.01, 179.0, "degrees")
+MAX_PIXELS = 16384  # per side: a 16384^2 float32 RGB film is 3.2 GB
+ALBEDO = Range(0.0, 1.0)  # materials and emitters alike (energy conservation)
+RADIANCE = Range(0.0, 1e15, "W/(m^2 sr)")  # irradiance: W/m^2; power stays < 1e29 W
+SIGMA = Range(0.0, 1e6, "1/m")  # optical depth 1 over a micrometre
+IOR = Range(1.0, 3.0)  # 1: an index-matched boundary (no refraction); diamond is 2.42
+WAVE_K = Range(-1e4, 1e4, "rad/m")  # wavelengths down to 0.6 mm
+WAVE_PHASE = Range(-1e6, 1e6, "rad")
+HG_G = Range(-0.999, 0.999)
+WATER_B = Range(0.0, 10.0)  # the 1 + b cos^2 phase of water (0.835 by Morel)
+PARALLEL = 0.999  # |cos| between a rectangle's normal and its `up` hint above which it fails
 
 
 def _frame(normal: np.ndarray, hint: np.ndarray | None):
-    if hint is None or abs(np.dot(hint / np.linalg.norm(hint), normal)) > 0.999:
+    if hint is None:
         hint = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.9 else np.array([0.0, 0.0, -1.0])
     t1 = np.cross(hint, normal)
     t1 /= np.linalg.norm(t1)
@@ -53,6 +66,7 @@ class _Parts:
     l_rad: list = dataclasses.field(default_factory=list)
     l_dir: list = dataclasses.field(default_factory=list)
     basin: tuple | None = None  # (min, max) of the last basin
+    sizes: list = dataclasses.field(default_factory=list)  # (field, smallest side or radius)
 
     def add_material(self, kind, albedo, ior=1.0) -> int:
         self.mat_kind.append(kind)
@@ -91,19 +105,18 @@ def parse_camera(ctx: _Ctx, c, width=None, height=None) -> dict:
     """[camera] -> origin, orthonormal (forward, right, up), tan(fov / 2), width, height."""
     ctx.table(c, {"position", "target", "up", "fov", "width", "height"},
               {"position", "target", "fov", "width", "height"}, "camera")
-    pos = ctx.vec(c["position"], "camera.position")
-    tgt = ctx.vec(c["target"], "camera.target")
+    pos = ctx.vec(c["position"], "camera.position", rng=COORD)
+    tgt = ctx.vec(c["target"], "camera.target", rng=COORD)
     up = ctx.unit(c.get("up", [0.0, 1.0, 0.0]), "camera.up")
-    fov = ctx.number(c["fov"], "camera.fov", positive=True)
-    if fov >= 180:
-        ctx.fail("camera.fov", f"must be < 180 degrees, got {fov}")
-    W = ctx.integer(c["width"] if width is None else width, "camera.width")
-    H = ctx.integer(c["height"] if height is None else height, "camera.height")
+    fov = ctx.number(c["fov"], "camera.fov", FOV)
+    W = ctx.integer(c["width"] if width is None else width, "camera.width", hi=MAX_PIXELS)
+    H = ctx.integer(c["height"] if height is None else height, "camera.height", hi=MAX_PIXELS)
     # The frame in float64 NumPy: jaxvcm._camera.camera_frame computes in JAX (float32
     # unless x64 is on) and does not give bit-identical frames.
     fwd = tgt - pos
-    if np.linalg.norm(fwd) == 0:
-        ctx.fail("camera.target", "must differ from camera.position")
+    if np.linalg.norm(fwd) < 1e-6 * max(1.0, np.abs(pos).max()):
+        ctx.fail("camera.target", "must differ from camera.position (by more than float32 "
+                                  "resolves)")
     fwd = fwd / np.linalg.norm(fwd)
     right = np.cross(fwd, up)
     if np.linalg.norm(right) < 1e-6:
@@ -115,17 +128,25 @@ def parse_camera(ctx: _Ctx, c, width=None, height=None) -> dict:
 
 
 # ---------------------------------------------------------------- [materials.NAME]
+def _albedo(ctx: _Ctx, v, field: str) -> np.ndarray:
+    """One rule for every albedo, of materials and of emitters: 0 <= albedo <= 1."""
+    a = ctx.spectrum(v, field)
+    for i, x in enumerate(a):
+        if x > 1:
+            ctx.fail(field if not isinstance(v, list) else f"{field}[{i}]",
+                     f"must be <= 1 (energy conservation), got {x:g}")
+    return a
+
+
 def parse_materials(ctx: _Ctx, mats, parts: _Parts) -> None:
     if not isinstance(mats, dict):
         ctx.fail("materials", "expected a table of named materials")
     parts.named = mats
     for mname, m in mats.items():
-        f = f"materials.{mname}"
+        f = key_path("materials", mname)
         ctx.table(m, {"type", "albedo"}, {"type"}, f)
         kind = ctx.string(m["type"], f + ".type", ("diffuse", "mirror"))
-        albedo = ctx.spectrum(m.get("albedo", 1.0 if kind == "mirror" else 0.5), f + ".albedo")
-        if np.any(albedo > 1):
-            ctx.fail(f + ".albedo", "must be <= 1 (energy conservation)")
+        albedo = _albedo(ctx, m.get("albedo", 1.0 if kind == "mirror" else 0.5), f + ".albedo")
         parts.mat_names.append(mname)
         parts.mat_kind.append(MAT_DIFFUSE if kind == "diffuse" else MAT_MIRROR)
         parts.mat_albedo.append(albedo)
@@ -134,47 +155,63 @@ def parse_materials(ctx: _Ctx, mats, parts: _Parts) -> None:
 
 # ---------------------------------------------------------------- [[shapes]]
 def _rect_size(ctx: _Ctx, s: dict, f: str) -> np.ndarray:
-    size = ctx.vec(s["size"], f + ".size", 2)
+    size = ctx.vec(s["size"], f + ".size", 2, rng=COORD)
     if np.any(size <= 0):
         ctx.fail(f + ".size", "zero-size shape: both sides must be > 0")
+    for i, x in enumerate(size):
+        ctx.number(x, f"{f}.size[{i}]", SIZE)
     return size
 
 
 def _radius(ctx: _Ctx, s: dict, f: str) -> float:
-    r = ctx.number(s["radius"], f + ".radius")
+    r = ctx.number(s["radius"], f + ".radius", COORD)
     if r <= 0:
         ctx.fail(f + ".radius", "zero-size shape: must be > 0")
-    return r
+    return ctx.number(r, f + ".radius", SIZE)
+
+
+def _rect(ctx: _Ctx, s: dict, f: str, parts: _Parts, mat: int, light: int = -1) -> None:
+    """A rectangle of a [[shapes]] or [[lights]] entry: center, normal, size, `up` hint."""
+    size = _rect_size(ctx, s, f)
+    normal = ctx.unit(s["normal"], f + ".normal")
+    hint = None
+    if "up" in s:
+        hint = ctx.unit(s["up"], f + ".up")
+        if abs(np.dot(hint, normal)) > PARALLEL:
+            ctx.fail(f + ".up", f"must not be parallel to {f}.normal (it orients the "
+                                "rectangle's sides)")
+    parts.add_rect(ctx.vec(s["center"], f + ".center", rng=COORD), normal, size, hint, mat,
+                   light)
+    parts.sizes.append((f + ".size", float(size.min())))
 
 
 def _rect_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
     ctx.table(s, {"type", "center", "normal", "size", "up", "material"},
               {"center", "normal", "size", "material"}, f)
-    size = _rect_size(ctx, s, f)
-    hint = ctx.vec(s["up"], f + ".up") if "up" in s else None
-    parts.add_rect(ctx.vec(s["center"], f + ".center"), ctx.unit(s["normal"], f + ".normal"),
-                   size, hint, parts.mat_ref(ctx, s["material"], f + ".material"))
+    _rect(ctx, s, f, parts, parts.mat_ref(ctx, s["material"], f + ".material"))
 
 
 def _sphere_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
     ctx.table(s, {"type", "center", "radius", "material"}, {"center", "radius", "material"}, f)
     r = _radius(ctx, s, f)
-    center = ctx.vec(s["center"], f + ".center")
+    center = ctx.vec(s["center"], f + ".center", rng=COORD)
     parts.add_sphere(center, r, parts.mat_ref(ctx, s["material"], f + ".material"))
+    parts.sizes.append((f + ".radius", r))
 
 
 def _basin_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
     """An open box: the floor and 4 inward-facing walls, as 5 rectangles."""
     ctx.table(s, {"type", "min", "max", "floor_material", "wall_material", "wall_tops"},
               {"min", "max", "floor_material", "wall_material"}, f)
-    lo = ctx.vec(s["min"], f + ".min")
-    hi = ctx.vec(s["max"], f + ".max")
+    lo = ctx.vec(s["min"], f + ".min", rng=COORD)
+    hi = ctx.vec(s["max"], f + ".max", rng=COORD)
     if np.any(hi <= lo):
         ctx.fail(f + ".max", "zero-size shape: max must exceed min on every axis")
-    tops = (ctx.vec(s["wall_tops"], f + ".wall_tops", 4) if "wall_tops" in s
+    tops = (ctx.vec(s["wall_tops"], f + ".wall_tops", 4, rng=COORD) if "wall_tops" in s
             else np.full(4, hi[1]))
     if np.any(tops <= lo[1]):
         ctx.fail(f + ".wall_tops", "every wall top must be above the floor")
+    parts.sizes.append((f + ".max", float(min((hi - lo).min(), (tops - lo[1]).min()))))
     fm = parts.mat_ref(ctx, s["floor_material"], f + ".floor_material")
     wm = parts.mat_ref(ctx, s["wall_material"], f + ".wall_material")
     x0, y0, z0 = lo
@@ -205,18 +242,15 @@ def parse_shapes(ctx: _Ctx, shapes, parts: _Parts) -> None:
 
 # ---------------------------------------------------------------- [[lights]]
 def _emitter_material(ctx: _Ctx, l: dict, f: str, parts: _Parts) -> int:
-    return parts.add_material(MAT_DIFFUSE, ctx.spectrum(l.get("albedo", 0.0), f + ".albedo"))
+    return parts.add_material(MAT_DIFFUSE, _albedo(ctx, l.get("albedo", 0.0), f + ".albedo"))
 
 
 def _rect_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     ctx.table(l, {"type", "center", "normal", "size", "radiance", "up", "albedo"},
               {"center", "normal", "size", "radiance"}, f)
-    size = _rect_size(ctx, l, f)
-    rad = ctx.spectrum(l["radiance"], f + ".radiance", positive=True)
+    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
     m = _emitter_material(ctx, l, f, parts)
-    hint = ctx.vec(l["up"], f + ".up") if "up" in l else None
-    parts.add_rect(ctx.vec(l["center"], f + ".center"), ctx.unit(l["normal"], f + ".normal"),
-                   size, hint, m, len(parts.l_kind))
+    _rect(ctx, l, f, parts, m, len(parts.l_kind))
     return LIGHT_RECT, len(parts.rect_p0) - 1, rad, np.zeros(3)
 
 
@@ -224,22 +258,23 @@ def _sphere_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     ctx.table(l, {"type", "center", "radius", "radiance", "albedo"},
               {"center", "radius", "radiance"}, f)
     r = _radius(ctx, l, f)
-    rad = ctx.spectrum(l["radiance"], f + ".radiance", positive=True)
+    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
     m = _emitter_material(ctx, l, f, parts)
-    parts.add_sphere(ctx.vec(l["center"], f + ".center"), r, m, len(parts.l_kind))
+    parts.add_sphere(ctx.vec(l["center"], f + ".center", rng=COORD), r, m, len(parts.l_kind))
+    parts.sizes.append((f + ".radius", r))
     return LIGHT_SPHERE, len(parts.sph_c) - 1, rad, np.zeros(3)
 
 
 def _sun_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     ctx.table(l, {"type", "direction", "irradiance"}, {"direction", "irradiance"}, f)
     dvec = ctx.unit(l["direction"], f + ".direction")
-    rad = ctx.spectrum(l["irradiance"], f + ".irradiance", positive=True)
+    rad = ctx.spectrum(l["irradiance"], f + ".irradiance", RADIANCE, positive=True)
     return LIGHT_SUN, -1, rad, dvec
 
 
 def _sky_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
-    rad = ctx.spectrum(l["radiance"], f + ".radiance", positive=True)
+    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
     return LIGHT_SKY, -1, rad, np.zeros(3)
 
 
@@ -262,6 +297,14 @@ def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
 
 
 # ---------------------------------------------------------------- [water]
+def _wave(ctx: _Ctx, w, f: str) -> np.ndarray:
+    """[A, kx, kz, phase]: amplitude in metres, wave numbers in rad/m, phase in rad."""
+    if not isinstance(w, list) or len(w) != 4:
+        ctx.fail(f, "expected a list of 4 numbers [A, kx, kz, phase]")
+    rngs = (COORD, WAVE_K, WAVE_K, WAVE_PHASE)
+    return np.array([ctx.number(x, f"{f}[{i}]", r) for i, (x, r) in enumerate(zip(w, rngs))])
+
+
 _PHASES = dict(isotropic=PHASE_ISOTROPIC, hg=PHASE_HG, water=PHASE_WATER)
 
 
@@ -278,23 +321,21 @@ def parse_water(ctx: _Ctx, wdoc, parts: _Parts) -> dict:
         return _no_water()
     ctx.table(wdoc, {"level", "waves", "sigma_a", "sigma_s", "phase", "g", "b", "ior",
                      "footprint", "floor"}, {"level", "sigma_a", "sigma_s", "ior"}, "water")
-    level = ctx.number(wdoc["level"], "water.level")
+    level = ctx.number(wdoc["level"], "water.level", COORD)
     waves = wdoc.get("waves", [])
     if not isinstance(waves, list):
         ctx.fail("water.waves", "expected a list of [A, kx, kz, phase]")
-    wv = np.array([ctx.vec(w, f"water.waves[{j}]", 4) for j, w in enumerate(waves)]
+    wv = np.array([_wave(ctx, w, f"water.waves[{j}]") for j, w in enumerate(waves)]
                   ).reshape(-1, 4)
-    sig_a = ctx.spectrum(wdoc["sigma_a"], "water.sigma_a")
-    sig_s = ctx.spectrum(wdoc["sigma_s"], "water.sigma_s")
+    sig_a = ctx.spectrum(wdoc["sigma_a"], "water.sigma_a", SIGMA)
+    sig_s = ctx.spectrum(wdoc["sigma_s"], "water.sigma_s", SIGMA)
     phase = ctx.string(wdoc.get("phase", "isotropic"), "water.phase", tuple(_PHASES))
-    g = ctx.number(wdoc.get("g", 0.0), "water.g")
-    if not -1 < g < 1:
-        ctx.fail("water.g", f"must lie in (-1, 1), got {g}")
-    b = ctx.number(wdoc.get("b", 0.835), "water.b", nonneg=True)
-    ior = ctx.number(wdoc["ior"], "water.ior", positive=True)
+    g = ctx.number(wdoc.get("g", 0.0), "water.g", HG_G)
+    b = ctx.number(wdoc.get("b", 0.835), "water.b", WATER_B)
+    ior = ctx.number(wdoc["ior"], "water.ior", IOR)
     basin = parts.basin
     if "footprint" in wdoc:
-        fp = ctx.vec(wdoc["footprint"], "water.footprint", 4)
+        fp = ctx.vec(wdoc["footprint"], "water.footprint", 4, rng=COORD)
     elif basin is not None:
         fp = np.array([basin[0][0], basin[1][0], basin[0][2], basin[1][2]])
     else:
@@ -302,7 +343,7 @@ def parse_water(ctx: _Ctx, wdoc, parts: _Parts) -> dict:
     if fp[1] <= fp[0] or fp[3] <= fp[2]:
         ctx.fail("water.footprint", "zero-size shape: need xmin < xmax and zmin < zmax")
     if "floor" in wdoc:
-        wfloor = ctx.number(wdoc["floor"], "water.floor")
+        wfloor = ctx.number(wdoc["floor"], "water.floor", COORD)
     elif basin is not None:
         wfloor = basin[0][1]
     else:

@@ -1,9 +1,19 @@
 """Reading a TOML file and validating its values, with one-line errors
-'FILE: FIELD: problem' that name the offending field (`SceneError`, `_Ctx`)."""
+'FILE: FIELD: problem' that name the offending field (`SceneError`, `_Ctx`).
+
+Every number of a scene goes through `_Ctx.number`, the one place that turns TOML values
+into floats: a value is rejected (one line naming the field) unless it is a finite number
+inside the field's documented range (`Range`, the table in `_scene_file.py`). Ranges keep
+every derived quantity finite in float32 (the renderer's precision): lengths |x| <= 1e6 m,
+so squares and areas stay far below float32's 3.4e38, and no value is stored as inf.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+import re
 import tomllib
 from typing import Any
 
@@ -14,6 +24,52 @@ CHANNELS = 3
 
 class SceneError(ValueError):
     """A malformed scene file. str() is one line: 'FILE: FIELD: problem'."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The valid values of a number field: lo <= x <= hi (`lo_open`: lo < x), in `unit`."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+    lo_open: bool = False
+
+    def contains(self, x: float) -> bool:
+        return (x > self.lo if self.lo_open else x >= self.lo) and x <= self.hi
+
+    def text(self) -> str:
+        u = f" {self.unit}" if self.unit else ""
+        return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]{u}"
+
+
+# ---- the ranges of the scene format (see the schema in `_scene_file.py`) ----
+MAX_LENGTH = 1e6  # metres: float32 resolves 0.06 m at 1e6 m; squares stay < 1e13
+COORD = Range(-MAX_LENGTH, MAX_LENGTH, "m")
+SIZE = Range(1e-6, MAX_LENGTH, "m")  # and >= REL_SIZE x the scene's bounding radius
+REL_SIZE = 1e-6  # 16 float32 ulps of the scene's extent: smaller shapes are not resolved
+DIRECTION = Range(-MAX_LENGTH, MAX_LENGTH)  # components; normalised, must be non-zero
+ANY = Range(-MAX_LENGTH, MAX_LENGTH)  # the default of a number without its own range
+
+
+def _fmt(v) -> str:
+    """A number for a message; a huge integer by its size (str() of one with more than
+    4300 digits raises)."""
+    if isinstance(v, int) and abs(v) > 10**15:
+        if v.bit_length() < 14000:  # str() refuses more than 4300 digits
+            return f"an integer of {len(str(abs(v)))} digits"
+        return f"an integer of about {int(v.bit_length() * math.log10(2)) + 1} digits"
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+_BARE = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def key_path(field: str, key: str) -> str:
+    """`field.key` for a message, the key quoted as TOML does when it is not bare (so a key
+    with a dot, a space or a newline cannot break the one line or fake a field)."""
+    k = key if _BARE.fullmatch(key) else json.dumps(key)
+    return f"{field}.{k}" if field else k
 
 
 class _Ctx:
@@ -29,43 +85,49 @@ class _Ctx:
             self.fail(field, f"expected a table, got {type(d).__name__}")
         for k in d:
             if k not in allowed:
-                self.fail(f"{field}.{k}" if field else k,
+                self.fail(key_path(field, k),
                           f"unknown key (allowed: {', '.join(sorted(allowed))})")
         for k in sorted(required):
             if k not in d:
-                self.fail(f"{field}.{k}" if field else k, "missing required field")
+                self.fail(key_path(field, k), "missing required field")
 
-    def number(self, v: Any, field: str, *, positive=False, nonneg=False) -> float:
+    def number(self, v: Any, field: str, rng: Range = ANY, *, positive=False,
+               nonneg=False) -> float:
+        """A finite float in `rng` (and > 0 / >= 0 with `positive` / `nonneg`)."""
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             self.fail(field, f"expected a number, got {type(v).__name__}")
-        v = float(v)
-        if not math.isfinite(v):
+        if isinstance(v, float) and not math.isfinite(v):
             self.fail(field, f"must be finite, got {v}")
         if positive and not v > 0:
-            self.fail(field, f"must be > 0, got {v}")
+            self.fail(field, f"must be > 0, got {_fmt(v)}")
         if nonneg and v < 0:
-            self.fail(field, f"must be >= 0, got {v}")
-        return v
+            self.fail(field, f"must be >= 0, got {_fmt(v)}")
+        # compare before converting: float() of an integer beyond 1.8e308 raises
+        if not (rng.lo < v if rng.lo_open else rng.lo <= v) or not v <= rng.hi:
+            self.fail(field, f"must lie in {rng.text()}, got {_fmt(v)}")
+        return float(v)
 
-    def integer(self, v: Any, field: str, lo: int = 1) -> int:
+    def integer(self, v: Any, field: str, lo: int = 1, hi: int | None = None) -> int:
         if isinstance(v, bool) or not isinstance(v, int):
             self.fail(field, f"expected an integer, got {type(v).__name__}")
         if v < lo:
-            self.fail(field, f"must be >= {lo}, got {v}")
+            self.fail(field, f"must be >= {lo}, got {_fmt(v)}")
+        if hi is not None and v > hi:
+            self.fail(field, f"must be <= {hi}, got {_fmt(v)}")
         return v
 
-    def vec(self, v: Any, field: str, n: int = 3) -> np.ndarray:
+    def vec(self, v: Any, field: str, n: int = 3, rng: Range = ANY) -> np.ndarray:
         if not isinstance(v, list) or len(v) != n:
             self.fail(field, f"expected a list of {n} numbers")
-        return np.array([self.number(x, f"{field}[{i}]") for i, x in enumerate(v)])
+        return np.array([self.number(x, f"{field}[{i}]", rng) for i, x in enumerate(v)])
 
-    def spectrum(self, v: Any, field: str, *, positive=False) -> np.ndarray:
+    def spectrum(self, v: Any, field: str, rng: Range = ANY, *, positive=False) -> np.ndarray:
         if isinstance(v, list):
             if len(v) != CHANNELS:
                 self.fail(field, f"expected a number or a list of {CHANNELS} numbers")
-            vals = [self.number(x, f"{field}[{i}]", nonneg=True) for i, x in enumerate(v)]
+            vals = [self.number(x, f"{field}[{i}]", rng, nonneg=True) for i, x in enumerate(v)]
         else:
-            vals = [self.number(v, field, nonneg=True)] * CHANNELS
+            vals = [self.number(v, field, rng, nonneg=True)] * CHANNELS
         a = np.array(vals)
         if positive and not np.any(a > 0):
             self.fail(field, "must be > 0 in some channel")
@@ -79,19 +141,41 @@ class _Ctx:
         return v
 
     def unit(self, v: Any, field: str) -> np.ndarray:
-        a = self.vec(v, field)
-        n = np.linalg.norm(a)
-        if n == 0:
+        """A direction: three numbers, not all zero, normalised (scaled by the largest
+        component first, so tiny or huge components neither underflow nor overflow)."""
+        a = self.vec(v, field, rng=DIRECTION)
+        m = np.max(np.abs(a))
+        if not m > 0:
             self.fail(field, "must be a non-zero vector")
-        return a / n
+        a = a / m
+        return a / np.linalg.norm(a)
 
 
-def read_toml(src: str) -> dict:
-    """The parsed TOML document at `src`; a missing file or a syntax error is a `SceneError`."""
+def _decode_error(e: UnicodeDecodeError) -> str:
+    return (f"encoding: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset "
+            f"{e.start}); TOML files must be UTF-8")
+
+
+def read_toml(src: str, error: type[Exception] = SceneError) -> dict:
+    """The parsed TOML document at `src`. Anything that keeps it from being read (missing
+    file, a directory, no permission, not UTF-8, a syntax error, nesting too deep for the
+    parser) is an `error` (default `SceneError`) whose one line names `src`."""
     try:
         with open(src, "rb") as f:
-            return tomllib.load(f)
+            data = f.read()
     except FileNotFoundError:
-        raise SceneError(f"{src}: file not found") from None
+        raise error(f"{src}: file not found") from None
+    except IsADirectoryError:
+        raise error(f"{src}: is a directory, not a TOML file") from None
+    except OSError as e:
+        raise error(f"{src}: cannot read: {e.strerror or e}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise error(f"{src}: {_decode_error(e)}") from None
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"{src}: TOML syntax: {e}") from None
+        raise error(f"{src}: TOML syntax: {e}") from None
+    except RecursionError:
+        raise error(f"{src}: TOML: arrays or tables nested too deeply") from None

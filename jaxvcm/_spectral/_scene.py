@@ -79,6 +79,7 @@ LAMBDA_MIN = 380.0  # nm
 LAMBDA_MAX = 720.0  # nm (exclusive upper end of the hero range)
 LAMBDA_RANGE = LAMBDA_MAX - LAMBDA_MIN
 GRID_STEP = 1.0  # nm, spacing of the precomputed tables
+MAX_WAVELENGTHS = 64  # per pass: each is a channel of every array of the pass
 CMFS_NAME = "CIE 1931 2 Degree Standard Observer"
 
 
@@ -238,8 +239,9 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
     if not isinstance(dispersion, (bool, str)) or dispersion not in modes:
         raise ValueError(f"dispersion: unknown {dispersion!r}; False/'off', True/'hero' or "
                          "'exact'")
-    if n_wavelengths < 1:
-        raise ValueError(f"n_wavelengths: must be >= 1, got {n_wavelengths}")
+    if not 1 <= n_wavelengths <= MAX_WAVELENGTHS:
+        raise ValueError(f"n_wavelengths: must lie in [1, {MAX_WAVELENGTHS}], "
+                         f"got {n_wavelengths}")
     water = WaterModel() if water is None else water
     dt = scene.bounds.dtype
     albedo = np.stack([upsample_reflectance(a) for a in np.asarray(scene.materials.albedo)])
