@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from . import _io
+from . import _io, _warm
 from ._version import __version__
 from ._config import RenderConfig
 from ._integrator import integrate
@@ -80,9 +80,17 @@ def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overfl
         config = dataclasses.replace(config, merge_capacity=cap)
 
 
+def _host_pass(scene, key, config, pass_index=0):
+    """`render_pass` jitted, or (warm starts on, `_warm`) its exported module."""
+    if _warm.enabled():
+        return _warm.exported_pass(render_pass, Diagnostics, scene, key, config, pass_index)
+    return _render_pass_jit(scene, key, config, pass_index)
+
+
 def render_pass_host(scene, key, config, pass_index=0):
-    """`render_pass` (jitted) with the merge-capacity re-run of `with_retry`."""
-    return with_retry(_render_pass_jit, scene, key, config, pass_index,
+    """`render_pass` (jitted, or exported for warm starts: `_warm`) with the
+    merge-capacity re-run of `with_retry`."""
+    return with_retry(_host_pass, scene, key, config, pass_index,
                       lambda d: d.merge_overflow, lambda d: d.merge_candidates)
 
 

@@ -14,7 +14,8 @@ PKG = ROOT / "jaxvcm"
 # libraries slow to import (or optional) that may be imported inside functions, so that
 # `import jaxvcm` stays light (and a few standard-library modules used on rare paths)
 LAZY_OK = {"colour", "matplotlib", "optimistix", "OpenEXR", "trimesh", "signal", "threading",
-           "warnings", "time"}
+           "warnings", "time",
+           "flatbuffers"}  # the optional extra `warm`: imported only to see whether it is there
 
 
 def _modules() -> dict[str, pathlib.Path]:
