@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from . import _io, _warm
+from . import _devices, _io, _warm
 from ._version import __version__
 from ._config import RenderConfig
 from ._integrator import integrate
@@ -140,11 +140,12 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
 
     try:
         while True:
-            est, bad = run_pass(i)
-            est = np.asarray(est, dtype=np.float64)
+            ests, bad = run_pass(i)  # one pass, or a list of passes i, i + 1, ... (devices)
+            for est in (ests if isinstance(ests, list) else [ests]):
+                est = np.asarray(est, dtype=np.float64)
+                acc = est if acc is None else acc + est  # in pass order, in float64
+                i += 1
             nonfinite += int(bad)
-            acc = est if acc is None else acc + est
-            i += 1
             now = _time.perf_counter()
             bar.update(i, now - t0)
             done = (passes is not None and i >= passes) or (time is not None and now - t0 >= time)
@@ -189,11 +190,15 @@ def render_warnings(image, nonfinite: int) -> list[str]:
 def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
            time: float | None = None, seed: int = 0, snapshot_every: float | None = None,
            out: str | None = None, config: RenderConfig | None = None, progress: bool = True,
-           exposure: float = 0.0, scene_path: str | None = None) -> np.ndarray:
+           exposure: float = 0.0, scene_path: str | None = None, devices=None) -> np.ndarray:
     """Progressive render (`progressive`) of `render_pass` with keys `pass_key(seed, i)`:
     the mean of the passes as float32 [H, W, C]; with `out`, EXR + PNG + JSON (and
-    snapshots every `snapshot_every` seconds)."""
+    snapshots every `snapshot_every` seconds). `devices` (None: every local device; a
+    count; or a list) run one pass each at once (`_devices`): the same passes and the same
+    image as on one device. With `passes` not a multiple of the device count the last
+    batch computes a whole batch and keeps only the passes asked for."""
     check_budget(passes, time)
+    devs = _devices.resolve_devices(devices)
     config = config or RenderConfig(algorithm=algorithm)
     if config.algorithm != algorithm:
         raise ValueError(f"algorithm: {algorithm!r} disagrees with config.algorithm "
@@ -201,11 +206,23 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     state = {"config": config}
 
     def run_pass(i):
-        img, diag, state["config"] = render_pass_host(scene, pass_key(seed, i), state["config"], i)
-        return img, diag.nonfinite
+        if len(devs) == 1:
+            img, diag, state["config"] = render_pass_host(scene, pass_key(seed, i),
+                                                          state["config"], i)
+            return img, diag.nonfinite
+        D = len(devs)
+        n = D if passes is None else min(D, passes - i)
+        idx = np.arange(i, i + D)
+        keys = jnp.stack([pass_key(seed, int(j)) for j in idx])
+        imgs, diag, state["config"] = with_retry(
+            lambda s, k, c, p: _devices.sharded_passes(render_pass, s, k, c, p, devs),
+            scene, keys, state["config"], idx, lambda d: d.merge_overflow,
+            lambda d: d.merge_candidates)
+        return list(imgs[:n]), int(np.sum(np.asarray(diag.nonfinite)[:n]))
 
     def meta(n, seconds, nonfinite, snapshot):
-        return _meta(scene, scene_path, state["config"], n, seconds, seed, nonfinite, snapshot)
+        return {**_meta(scene, scene_path, state["config"], n, seconds, seed, nonfinite,
+                        snapshot), "devices": len(devs)}
 
     mean, _, _ = progressive(run_pass, lambda m: m, meta, passes=passes, time=time, out=out,
                              snapshot_every=snapshot_every, progress=progress,

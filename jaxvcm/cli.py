@@ -29,6 +29,7 @@ import jaxvcm
 from . import _fit
 from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
 from ._config import ALGORITHMS, MAX_DEPTH, RenderConfig
+from ._devices import resolve_devices
 from ._fit import WATER_FIELDS
 from ._io import FORMATS, check_writable, export_scene
 from ._io._scene_sections import MAX_PIXELS
@@ -139,6 +140,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="exposure of the PNG preview, in stops")
     r.add_argument("--max-depth", type=_pos_int(hi=MAX_DEPTH), metavar="D",
                    help="maximum path length in segments")
+    r.add_argument("--devices", type=_pos_int(), default=None, metavar="N",
+                   help="run N passes at once, one on each of the first N local devices "
+                        "(default: all local devices; the image does not depend on N)")
     r.add_argument("--quiet", action="store_true", help="no progress line")
     r.add_argument("--spectral", action="store_true",
                    help="spectral mode (hero wavelengths, CIE XYZ film; jaxvcm.render_spectral): "
@@ -203,6 +207,8 @@ def _cmd_render_spectral(a, out, config) -> int:
         raise ValueError("--time: not available with --spectral; use --passes N")
     if a.snapshot_every is not None:
         raise ValueError("--snapshot-every: not available with --spectral")
+    if a.devices is not None:
+        raise ValueError("--devices: not available with --spectral (one device)")
     water = _water_model(a.water)
     passes = a.passes or 16
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
@@ -252,6 +258,7 @@ def _cmd_render(a) -> int:
     config = RenderConfig(**cfg)
     if a.spectral:
         return _cmd_render_spectral(a, out, config)
+    resolve_devices(a.devices)  # before anything is loaded or written
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
     d = os.path.dirname(os.path.abspath(out))
     os.makedirs(d, exist_ok=True)
@@ -262,7 +269,7 @@ def _cmd_render(a) -> int:
             jaxvcm.render(scene, algorithm=a.algorithm, passes=passes, time=tlimit,
                           seed=a.seed, snapshot_every=a.snapshot_every, out=out,
                           exposure=a.exposure, scene_path=a.scene, config=config,
-                          progress=not a.quiet)
+                          progress=not a.quiet, devices=a.devices)
     except KeyboardInterrupt:
         snap = " (last snapshot: " + out + ")" if a.snapshot_every and os.path.exists(out) else ""
         print(f"{PROG}: interrupted{snap}", file=sys.stderr, flush=True)
