@@ -125,6 +125,7 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
     passes done, nonfinite)."""
     passes, time = check_budget(passes, time)
     if out:
+        _io.prefetch_imports()
         _io.recover_outputs(out)
     acc = None
     nonfinite = 0

@@ -11,6 +11,7 @@ from ._images import atomic_paths as atomic_paths
 from ._images import check_outputs as check_outputs
 from ._images import check_writable as check_writable
 from ._images import png_bytes as png_bytes
+from ._images import prefetch_imports as prefetch_imports
 from ._images import read_exr as read_exr
 from ._images import recover_outputs as recover_outputs
 from ._images import to_srgb8 as to_srgb8

@@ -26,6 +26,7 @@ import json
 import os
 import re
 import tempfile
+import threading
 from collections.abc import Iterator
 
 import numpy as np
@@ -194,6 +195,21 @@ def write_exr(path: str, image, header: dict | None = None) -> None:
     a = _check_image(image)
     with atomic_path(path) as tmp:
         OpenEXR.File(_exr_header(header), _channels(a)).write(tmp)
+
+
+def prefetch_imports() -> threading.Thread:
+    """Import what writing the outputs needs (colour-science: about 2 s; matplotlib's PNG
+    writer; OpenEXR) on a daemon thread, so that it overlaps the first pass, which spends
+    its time in XLA with the GIL released, instead of following it."""
+    def work():
+        with contextlib.suppress(Exception):  # the writer imports again and reports
+            import colour  # noqa: F401
+            import matplotlib.image  # noqa: F401
+            import OpenEXR  # noqa: F401
+
+    t = threading.Thread(target=work, name="jaxvcm-prefetch-imports", daemon=True)
+    t.start()
+    return t
 
 
 def to_srgb8(image, exposure: float = 0.0) -> np.ndarray:
