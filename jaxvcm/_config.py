@@ -84,6 +84,14 @@ class RenderConfig:
                  `_queue.MIN_ROUND`) per round, taking
                  only lanes whose subpath is still alive (`_subpath.trace`); 1 = every
                  lane every round. Changes the work, not the result.
+    chunks:      camera and light paths of a pass are traced in this many chunks, one
+                 after the other (`lax.scan`), so a pass's memory is that of 1/chunks of its
+                 paths (bounded memory, `chunks_for_memory`). Chunk c has the paths
+                 c N/chunks .. (c + 1) N/chunks - 1 (rows of pixels) and as many light paths;
+                 its camera vertices merge with its own photons (eta = pi r^2 N/chunks),
+                 while every chunk's light paths splat onto the whole film with 1/N, so light
+                 tracing's count stays N: an unbiased pass with the MIS counts of what each
+                 technique sees. 1 = one chunk (the same samples as before chunks existed).
     mis_form:    "explicit" (log-space sums over all techniques, `_mis.py`) or "recursive"
                  (the tech report's dVCM/dVC/dVM recursion in linear space,
                  `_mis_recursive.py`: same weights, but limited float32 range).
@@ -100,6 +108,7 @@ class RenderConfig:
     merge_capacity: int = 512
     mis_form: str = "explicit"
     trace_split: int = 8
+    chunks: int = 1
 
     @property
     def techniques(self) -> Techniques:
@@ -113,7 +122,7 @@ class RenderConfig:
             raise ValueError(f"config.mis: unknown {self.mis!r}; one of {MIS_HEURISTICS}")
         if self.mis_form not in MIS_FORMS:
             raise ValueError(f"config.mis_form: unknown {self.mis_form!r}; one of {MIS_FORMS}")
-        for name in ("max_depth", "march_steps", "spp", "trace_split"):
+        for name in ("max_depth", "march_steps", "spp", "trace_split", "chunks"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")

@@ -219,7 +219,8 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     f0 = Le0 * jnp.abs(vec.dot(y.n, to_cam))[..., None]
     fi = _f(scene)(y.kind, y.mat, y.wo, to_cam, y.n)
     fterm = jnp.where(first[..., None], f0, fi)
-    contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30))[..., None] / N
+    contrib = (y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30))[..., None]
+               / (N * cfg.chunks))  # 1/N of the whole pass: every chunk splats
     # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
     B_s1 = imp * _conv(y.medium, y.n, w, d, wseg, scene)
     b2, pr = _reverse(scene)(y.kind, y.mat, y.n, y.p, to_cam, y.wo, yp.p, yp.medium, yp.n,

@@ -82,6 +82,7 @@ class PassState(eqx.Module):
 
     key: PRNGKeyArray
     pass_index: Any
+    chunk: Any = 0  # which chunk of the pass's paths (`RenderConfig.chunks`)
     keys: Any = None  # [5]: camera rays, camera paths, next-event, emission, light paths
     radius: Any = None  # `_merge.Radii` of this pass (merging algorithms)
     etas: Any = None  # log eta_VCM (surface, medium) when every camera vertex merges
@@ -112,10 +113,25 @@ Stage = Callable[[Scene, RenderConfig, PassState], PassState]
 
 
 def _dims(scene: Scene, cfg: RenderConfig):
-    """(pixels P, paths N, max depth D, dtype)."""
+    """(pixels P, paths N of one chunk, max depth D, dtype)."""
     cam = scene.camera
     P = cam.height * cam.width
-    return P, P * cfg.spp, cfg.max_depth, cam.origin.dtype
+    return P, P * cfg.spp // cfg.chunks, cfg.max_depth, cam.origin.dtype
+
+
+def check_chunks(scene: Scene, cfg: RenderConfig) -> None:
+    """The chunks must split the pass's paths evenly."""
+    cam = scene.camera
+    n = cam.height * cam.width * cfg.spp
+    if n % cfg.chunks:
+        raise ValueError(f"config.chunks: {cfg.chunks} does not divide the pass's "
+                         f"{n} paths ({cam.width} x {cam.height} x {cfg.spp} spp)")
+
+
+def _path_pixels(scene: Scene, cfg: RenderConfig, st) -> Int[Array, " N"]:
+    """The pixel of each camera path of chunk `st.chunk`."""
+    P, N, _, _ = _dims(scene, cfg)
+    return ((st.chunk * N + jnp.arange(N, dtype=jnp.int32)) % P).astype(jnp.int32)
 
 
 def _light_steps(cfg: RenderConfig) -> int:
@@ -155,7 +171,7 @@ def setup(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     cam = scene.camera
     P, N, D, dt = _dims(scene, cfg)
-    pixel = jnp.arange(N, dtype=jnp.int32) % P
+    pixel = _path_pixels(scene, cfg, st)
     u_cam = jax.random.uniform(st.keys[0], (2, N), dt)
     o, d = jax.vmap(camera.generate_ray, in_axes=(None, 0, 0, 0))(cam, pixel, u_cam[0], u_cam[1])
     _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
@@ -315,6 +331,8 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
                      ) -> tuple[TechniqueImages, PassStats]:
     """Every technique's weighted image of one pass (`Technique` labels), and its stats.
     `pass_index` drives the merging radius schedule."""
+    if cfg.chunks != 1:
+        raise ValueError(f"config.chunks: technique images need one chunk, got {cfg.chunks}")
     st = PassState(key=key, pass_index=pass_index)
     for _, stage in pass_stages(cfg):
         st = stage(scene, cfg, st)
@@ -324,7 +342,13 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
 def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
               ) -> tuple[Float[Array, "H W C"], Int[Array, ""], PassStats]:
     """The pass's image (the sum of its technique images, non-finite contributions zeroed),
-    the number of non-finite contributions, and its stats."""
+    the number of non-finite contributions, and its stats. With `cfg.chunks` > 1 the
+    chunks run one after the other in a `lax.scan` (keys `fold_in(key, chunk)`), each
+    adding its techniques straight into the image (`_chunk_film`), so no [techniques, H, W]
+    stack or whole-pass subpath record is ever held."""
+    check_chunks(scene, cfg)
+    if cfg.chunks > 1:
+        return _integrate_chunks(scene, key, cfg, pass_index)
     tech, stats = technique_images(scene, key, cfg, pass_index)
     cam = scene.camera
     img = jnp.zeros((cam.height, cam.width, scene.channels), cam.origin.dtype)
@@ -334,6 +358,55 @@ def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
         bad = bad + jnp.sum(~finite).astype(jnp.int32)
         img = img + jnp.where(finite, v, 0.0)
     return img, bad, stats
+
+
+def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
+    """A chunk's techniques added into one [P, C] image (non-finite values zeroed and
+    counted): camera-path values at their pixels (1/spp), light-tracing splats where they
+    land (each carries 1/N of the pass already)."""
+    P, N, _, dt = _dims(scene, cfg)
+    C = scene.channels
+    img = jnp.zeros((P, C), dt)
+    cam_sum = jnp.zeros((N, C), dt)
+    bad = jnp.zeros((), jnp.int32)
+    for val in st.values:
+        v = val[1] if isinstance(val, tuple) else val
+        finite = jnp.isfinite(v)
+        bad = bad + jnp.sum(~finite).astype(jnp.int32)
+        v = jnp.where(finite, v, 0.0)
+        if isinstance(val, tuple):
+            img = img.at[val[0]].add(v)
+        else:
+            cam_sum = cam_sum + v
+    img = img.at[_path_pixels(scene, cfg, st)].add(cam_sum / cfg.spp)
+    zero = jnp.zeros((), jnp.int32)
+    cv = zero if st.cverts is None else jnp.sum(st.cverts.alive).astype(jnp.int32)
+    lv = zero if st.lverts is None else jnp.sum(st.lverts.alive).astype(jnp.int32)
+    return img, bad, PassStats(cv, lv, st.overflow, st.need)
+
+
+def _integrate_chunks(scene, key, cfg, pass_index):
+    cam = scene.camera
+    H, W, C = cam.height, cam.width, scene.channels
+    stages = [f for name, f in pass_stages(cfg) if name != "film"]
+
+    def body(carry, c):
+        img, bad, stats = carry
+        st = PassState(key=jax.random.fold_in(key, c), pass_index=pass_index, chunk=c)
+        for stage in stages:
+            st = stage(scene, cfg, st)
+        i2, b2, s2 = _chunk_film(scene, cfg, st)
+        stats = PassStats(stats.camera_vertices + s2.camera_vertices,
+                          stats.light_vertices + s2.light_vertices,
+                          stats.merge_overflow | s2.merge_overflow,
+                          jnp.maximum(stats.merge_candidates, s2.merge_candidates))
+        return (img + i2, bad + b2, stats), None
+
+    zero = jnp.zeros((), jnp.int32)
+    init = (jnp.zeros((H * W, C), cam.origin.dtype), zero,
+            PassStats(zero, zero, jnp.zeros((), bool), zero))
+    (img, bad, stats), _ = jax.lax.scan(body, init, jnp.arange(cfg.chunks, dtype=jnp.int32))
+    return img.reshape(H, W, C), bad, stats
 
 
 # ---- profiling: each stage jitted and timed on its own

@@ -94,8 +94,9 @@ def path_pdfs(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_
 def log_n_light_tracing(cfg: RenderConfig, n_paths, dtype):
     """log of light tracing's sample count relative to the camera techniques, per pixel:
     each of the N = pixels * spp light paths splats once (n = N per pixel, Veach 1997
-    10.3.4) while a pixel has spp camera paths, so n_LT / n_camera = N / spp = pixels."""
-    return jnp.log(jnp.asarray(n_paths // cfg.spp, dtype))
+    10.3.4) while a pixel has spp camera paths, so n_LT / n_camera = N / spp = pixels.
+    `n_paths` is a chunk's count: every chunk's light paths splat (`RenderConfig.chunks`)."""
+    return jnp.log(jnp.asarray(n_paths * cfg.chunks // cfg.spp, dtype))
 
 
 def weight(cfg: RenderConfig, s, t, lig: Pdfs, cam: Pdfs, A_s, A_s1, B_s1, B_s2,

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from . import _devices, _io, _warm
+from . import _devices, _hosts, _io, _memory, _warm
 from ._version import __version__
 from ._config import RenderConfig
 from ._integrator import integrate
@@ -112,62 +112,81 @@ def check_budget(passes, time):
 
 
 def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
-                snapshot_every=None, progress=True, exposure=0.0):
+                snapshot_every=None, progress=True, exposure=0.0, total=None, start=None):
     """Average independent passes until `passes` are done or `time` seconds have elapsed (at
-    least one pass). `run_pass(i) -> (estimate ndarray, nonfinite count)`; `to_image(mean)`
+    least one pass). `run_pass(i) -> (estimates, nonfinite count)`: the estimate ndarray of
+    pass i, a list of them (passes i, i + 1, ...), or the count of passes it added to sums
+    kept on the devices, whose float64 total `total()` returns (`_devices.DeviceSum`).
+    `start = (passes done, their float64 sum)` resumes an earlier render. `to_image(mean)`
     turns the running mean into the image written; `meta(passes, seconds, nonfinite,
     snapshot)` its JSON record, to which "warnings" (one line each) is added. With `out`,
     writes EXR + PNG + JSON at the end, and with `snapshot_every` (seconds) atomic snapshots
     along the way, so a killed render leaves its last snapshot intact. The first pass
     includes the compilation: the progress line says "compiling" until it is done, and the
     snapshot clock starts when it has finished. Before anything, `out`'s set is recovered
-    from an earlier killed render (`_io.recover_outputs`). Returns (mean estimate float64,
-    passes done, nonfinite)."""
+    from an earlier killed render (`_io.recover_outputs`). On many processes (`_hosts`) every
+    process runs this loop; process 0 prints and writes, and its clock decides when to stop
+    and when to snapshot (`_hosts.agree`). Returns (mean estimate float64, passes done,
+    nonfinite)."""
     passes, time = check_budget(passes, time)
+    lead = _hosts.is_lead()
+    out = out if lead else None
     if out:
         _io.prefetch_imports()
         _io.recover_outputs(out)
-    acc = None
+    i, acc = (0, None) if start is None else start
     nonfinite = 0
     t0 = _time.perf_counter()
     last_snap = None
-    bar = _io.Progress(total=passes, time_budget=time, enabled=progress)
+    bar = _io.Progress(total=passes, time_budget=time, enabled=progress and lead)
     bar.start()
-    i = 0
 
     def record(n, seconds, image, snapshot):
         m = meta(n, seconds, nonfinite, snapshot)
         return {**m, "warnings": render_warnings(image, nonfinite)}
 
+    def mean():
+        s = acc
+        if total is not None:
+            s = total() if s is None else s + total()
+        return s / i
+
     try:
         while True:
-            ests, bad = run_pass(i)  # one pass, or a list of passes i, i + 1, ... (devices)
-            for est in (ests if isinstance(ests, list) else [ests]):
-                est = np.asarray(est, dtype=np.float64)
-                acc = est if acc is None else acc + est  # in pass order, in float64
-                i += 1
+            ests, bad = run_pass(i)
+            if isinstance(ests, (int, np.integer)):
+                i += int(ests)  # added on the devices
+            else:
+                for est in (ests if isinstance(ests, list) else [ests]):
+                    est = np.asarray(est, dtype=np.float64)
+                    acc = est if acc is None else acc + est  # in pass order, in float64
+                    i += 1
             nonfinite += int(bad)
             now = _time.perf_counter()
             bar.update(i, now - t0)
             done = (passes is not None and i >= passes) or (time is not None and now - t0 >= time)
             last_snap = now if last_snap is None else last_snap
-            if out and snapshot_every is not None and not done and now - last_snap >= snapshot_every:
-                img = to_image(acc / i).astype(np.float32)
-                _io.write_outputs(out, img, record(i, now - t0, img, True), exposure)
+            snap = (bool(out) and snapshot_every is not None and not done
+                    and now - last_snap >= snapshot_every)
+            done, snap = (bool(x) for x in _hosts.agree((done, snap)))
+            if snap:
+                img = to_image(mean()).astype(np.float32)  # a collective: every process
+                if out:
+                    _io.write_outputs(out, img, record(i, now - t0, img, True), exposure)
                 last_snap = now
             if done:
                 break
     finally:
         bar.close()
-    mean = acc / i
-    img = to_image(mean).astype(np.float32)
-    if nonfinite:
+    m = mean()
+    img = to_image(m).astype(np.float32)
+    if nonfinite and lead:
         import warnings
 
         warnings.warn("; ".join(render_warnings(img, nonfinite)))
     if out:
         _io.write_outputs(out, img, record(i, _time.perf_counter() - t0, img, False), exposure)
-    return mean, i, nonfinite
+    return m, i, nonfinite
 
 
 ALL_NONFINITE = "every path contribution was non-finite"
@@ -191,44 +210,119 @@ def render_warnings(image, nonfinite: int) -> list[str]:
 def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
            time: float | None = None, seed: int = 0, snapshot_every: float | None = None,
            out: str | None = None, config: RenderConfig | None = None, progress: bool = True,
-           exposure: float = 0.0, scene_path: str | None = None, devices=None) -> np.ndarray:
+           exposure: float = 0.0, scene_path: str | None = None, devices=None,
+           resume: bool = False, memory: int | str | None = None) -> np.ndarray:
     """Progressive render (`progressive`) of `render_pass` with keys `pass_key(seed, i)`:
     the mean of the passes as float32 [H, W, C]; with `out`, EXR + PNG + JSON (and
     snapshots every `snapshot_every` seconds). `devices` (None: every local device; a
-    count; or a list) run one pass each at once (`_devices`): the same passes and the same
-    image as on one device. With `passes` not a multiple of the device count the last
-    batch computes a whole batch and keeps only the passes asked for."""
+    count; or a list) run one pass each at once (`_devices`; on a multi-process launch,
+    `_hosts`, that many on every process): the same passes as on one device, summed on the
+    devices, so the image equals the one-device image to float32 rounding of the sums. With
+    `passes` not a multiple of the device count the last batch masks the passes not asked
+    for. `resume` with `out`: continue the render whose set `out` holds (same scene, seed,
+    algorithm and config) from its pass count up to `passes` (a total) or for `time` more
+    seconds; the passes are those an uninterrupted render draws, so the result equals it to
+    float32 rounding of the stored mean. `memory` (bytes, or '4G'): trace each pass in as
+    many chunks as keep its working memory under it (`_memory.chunks_for_memory`, which
+    sets `config.chunks`)."""
     check_budget(passes, time)
-    devs = _devices.resolve_devices(devices)
+    local = _devices.resolve_devices(devices)
+    devs = _devices.mesh_devices(local)
     config = config or RenderConfig(algorithm=algorithm)
     if config.algorithm != algorithm:
         raise ValueError(f"algorithm: {algorithm!r} disagrees with config.algorithm "
                          f"{config.algorithm!r}")
+    if memory is not None:
+        budget = _memory.parse_bytes(memory) if isinstance(memory, str) else int(memory)
+        config = dataclasses.replace(config, chunks=_memory.chunks_for_memory(scene, config,
+                                                                              budget))
     state = {"config": config}
+    start = None
+    if resume:
+        start = _resume_start(out, scene, scene_path, config, seed)
+        if start is not None and passes is not None and start[0] >= passes:
+            return (start[1] / start[0]).astype(np.float32)
+    G = len(devs)
+    cam = scene.camera
+    dsum = (None if G == 1 else
+            _devices.DeviceSum(render_pass, scene, devs, (cam.height, cam.width, scene.channels)))
 
     def run_pass(i):
-        if len(devs) == 1:
+        if G == 1:
             img, diag, state["config"] = render_pass_host(scene, pass_key(seed, i),
                                                           state["config"], i)
             return img, diag.nonfinite
-        D = len(devs)
-        n = D if passes is None else min(D, passes - i)
-        idx = np.arange(i, i + D)
+        n = G if passes is None else min(G, passes - i)
+        idx = np.arange(i, i + G)
         keys = jnp.stack([pass_key(seed, int(j)) for j in idx])
-        imgs, diag, state["config"] = with_retry(
-            lambda s, k, c, p: _devices.sharded_passes(render_pass, s, k, c, p, devs),
-            scene, keys, state["config"], idx, lambda d: d.merge_overflow,
-            lambda d: d.merge_candidates)
-        return list(imgs[:n]), int(np.sum(np.asarray(diag.nonfinite)[:n]))
+        valid = np.arange(G) < n
+        sums, diag, state["config"] = with_retry(
+            lambda s, k, c, p: dsum.run(k, p, valid, c), scene, keys, state["config"], idx,
+            lambda d: d.merge_overflow & valid, lambda d: d.merge_candidates)
+        dsum.add(sums)
+        return n, int(np.sum(np.asarray(diag.nonfinite)[valid]))
 
     def meta(n, seconds, nonfinite, snapshot):
         return {**_meta(scene, scene_path, state["config"], n, seconds, seed, nonfinite,
-                        snapshot), "devices": len(devs)}
+                        snapshot), "devices": G, "processes": _hosts.count()}
 
     mean, _, _ = progressive(run_pass, lambda m: m, meta, passes=passes, time=time, out=out,
                              snapshot_every=snapshot_every, progress=progress,
-                             exposure=exposure)
+                             exposure=exposure, total=None if dsum is None else dsum.total,
+                             start=start)
     return mean.astype(np.float32)
+
+
+RESUME_KEYS = ("algorithm", "seed", "width", "height", "scene_name")
+
+
+def _resume_start(out, scene, scene_path, config, seed):
+    """(passes done, their float64 sum) of the render in `out`'s set, checked against this
+    render; None if there is no `out` yet. Process 0 reads it and broadcasts it."""
+    if not out:
+        raise ValueError("resume: needs out (the render to continue)")
+    err, start = None, None
+    if _hosts.is_lead():
+        try:
+            start = _read_resume(out, scene, scene_path, config, seed)
+        except ValueError as e:
+            err = e
+    if _hosts.count() > 1:
+        code = -1 if err is not None else (0 if start is None else start[0])
+        (code,) = _hosts.agree((code,))
+        if code < 0:
+            raise err or ValueError("resume: refused by process 0 (see its message)")
+        if code == 0:
+            return None
+        shape = (scene.camera.height, scene.camera.width, scene.channels)
+        m = start[1] if start is not None else np.zeros(shape, np.float32)
+        start = int(code), _hosts.broadcast(m)
+    elif err is not None:
+        raise err
+    # the sum of the passes done, from the stored float32 mean (every process alike)
+    return None if start is None else (start[0], start[1].astype(np.float64) * start[0])
+
+
+def _read_resume(out, scene, scene_path, config, seed):
+    import os
+
+    if not os.path.exists(out):
+        return None
+    _io.recover_outputs(out)
+    meta = _io.read_record(out)
+    if meta is None or "passes" not in meta:
+        raise ValueError(f"resume: {out}: not a jaxvcm render (no record in the EXR)")
+    want = _meta(scene, scene_path, config, 0, 0.0, seed, 0, False)
+    for k in RESUME_KEYS + (("scene_sha256",) if scene_path is not None else ()):
+        if meta.get(k) != want[k]:
+            raise ValueError(f"resume: {out} was rendered with {k} = {meta.get(k)!r}, "
+                             f"this render has {want[k]!r}")
+    had = {k: v for k, v in meta["config"].items() if k != "merge_capacity"}
+    now = {k: v for k, v in want["config"].items() if k != "merge_capacity"}
+    if had != now:
+        diff = sorted(k for k in set(had) | set(now) if had.get(k) != now.get(k))
+        raise ValueError(f"resume: {out} was rendered with another config ({', '.join(diff)})")
+    return int(meta["passes"]), _io.read_exr(out)
 
 
 def _meta(scene, scene_path, config, passes, seconds, seed, nonfinite, snapshot):

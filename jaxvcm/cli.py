@@ -26,10 +26,11 @@ import numpy as np
 
 import jaxvcm
 
-from . import _fit
+from . import _fit, _hosts
 from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
 from ._config import ALGORITHMS, MAX_DEPTH, RenderConfig
 from ._devices import resolve_devices
+from ._memory import parse_bytes
 from ._fit import WATER_FIELDS
 from ._io import FORMATS, check_writable, export_scene
 from ._io._scene_sections import MAX_PIXELS
@@ -143,6 +144,21 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--devices", type=_pos_int(), default=None, metavar="N",
                    help="run N passes at once, one on each of the first N local devices "
                         "(default: all local devices; the image does not depend on N)")
+    r.add_argument("--memory", default=None, metavar="SIZE",
+                   help="working memory per pass, e.g. 4G: each pass is traced in as many "
+                        "chunks of paths as keep it under SIZE (measured by compiling a probe "
+                        "chunk); default: one chunk")
+    r.add_argument("--resume", action="store_true",
+                   help="continue the render in --out (same scene, seed, algorithm and "
+                        "settings) up to --passes in all, or for --time more seconds")
+    r.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="multi-process render on jax.distributed: process 0's address "
+                        "(default: $JAX_COORDINATOR_ADDRESS); every process renders its "
+                        "share of the passes, process 0 writes the outputs")
+    r.add_argument("--num-processes", type=_pos_int(hi=4096), default=None, metavar="P",
+                   help="processes of a multi-process render (default: $JAX_NUM_PROCESSES)")
+    r.add_argument("--process-id", type=_pos_int(lo=0, hi=4095), default=None, metavar="I",
+                   help="this process's id, 0..P-1 (default: $JAX_PROCESS_ID)")
     r.add_argument("--quiet", action="store_true", help="no progress line")
     r.add_argument("--spectral", action="store_true",
                    help="spectral mode (hero wavelengths, CIE XYZ film; jaxvcm.render_spectral): "
@@ -207,8 +223,12 @@ def _cmd_render_spectral(a, out, config) -> int:
         raise ValueError("--time: not available with --spectral; use --passes N")
     if a.snapshot_every is not None:
         raise ValueError("--snapshot-every: not available with --spectral")
-    if a.devices is not None:
-        raise ValueError("--devices: not available with --spectral (one device)")
+    for flag, v in (("--devices", a.devices), ("--resume", a.resume or None),
+                    ("--memory", a.memory),
+                    ("--coordinator", a.coordinator), ("--num-processes", a.num_processes),
+                    ("--process-id", a.process_id)):
+        if v is not None:
+            raise ValueError(f"{flag}: not available with --spectral (one device)")
     water = _water_model(a.water)
     passes = a.passes or 16
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
@@ -258,22 +278,30 @@ def _cmd_render(a) -> int:
     config = RenderConfig(**cfg)
     if a.spectral:
         return _cmd_render_spectral(a, out, config)
+    if _hosts.requested(a.coordinator, a.num_processes, a.process_id):
+        _hosts.initialize(a.coordinator, a.num_processes, a.process_id)  # before any backend
     resolve_devices(a.devices)  # before anything is loaded or written
+    if a.memory is not None:
+        parse_bytes(a.memory)
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
-    d = os.path.dirname(os.path.abspath(out))
-    os.makedirs(d, exist_ok=True)
-    check_writable(out)
+    lead = _hosts.is_lead()
+    if lead:
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        check_writable(out)
     _enable_compilation_cache()
     try:
         with _quiet_nonfinite_warning():
             jaxvcm.render(scene, algorithm=a.algorithm, passes=passes, time=tlimit,
                           seed=a.seed, snapshot_every=a.snapshot_every, out=out,
                           exposure=a.exposure, scene_path=a.scene, config=config,
-                          progress=not a.quiet, devices=a.devices)
+                          progress=not a.quiet, devices=a.devices, resume=a.resume,
+                          memory=a.memory)
     except KeyboardInterrupt:
         snap = " (last snapshot: " + out + ")" if a.snapshot_every and os.path.exists(out) else ""
         print(f"{PROG}: interrupted{snap}", file=sys.stderr, flush=True)
         return 130
+    if not lead:
+        return 0
     print(out)
     return _report_render(out)
 

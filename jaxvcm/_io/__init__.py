@@ -10,6 +10,7 @@ from ._images import atomic_path as atomic_path
 from ._images import atomic_paths as atomic_paths
 from ._images import check_outputs as check_outputs
 from ._images import check_writable as check_writable
+from ._images import read_record as read_record
 from ._images import png_bytes as png_bytes
 from ._images import prefetch_imports as prefetch_imports
 from ._images import read_exr as read_exr

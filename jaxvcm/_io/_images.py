@@ -338,6 +338,12 @@ def _exr_record(path: str) -> dict | None:
         return None
 
 
+def read_record(path: str) -> dict | None:
+    """The JSON record a jaxvcm EXR carries in its header (None: no such EXR or no
+    record)."""
+    return _exr_record(path) if os.path.isfile(path) else None
+
+
 def _stale_temps(path: str) -> list[str]:
     """Temp files next to `path` made by processes that no longer run."""
     pre = _tmp_prefix(path)

@@ -1,0 +1,72 @@
+"""Passes in a memory budget (issue 11, bounded memory): the chunk count
+(`RenderConfig.chunks`) that keeps one pass's working memory under a budget.
+
+A pass's temporary memory is, to a good approximation, a cost per path of one chunk (the
+subpath records, the techniques' per-lane values, the hash grid) plus the film. The cost
+per path is not guessed: `bytes_per_path` compiles the pass at a probe chunk of
+`PROBE_PATHS` paths and reads XLA's own memory analysis of that program
+(`Compiled.memory_analysis`: temporaries, outputs, arguments), charging the whole of it to
+the probe's paths, which over-estimates by the film's share. `chunks_for_memory` then takes
+the fewest chunks that divide the pass's paths evenly and fit. Measured (docs/benchmarks.md,
+"Bounded memory"): VCM at depth 8 about 16 kB per path, PT 4 kB.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import jax
+
+from ._config import RenderConfig
+
+PROBE_PATHS = 1024
+MIN_CHUNK = 256  # paths; smaller chunks are all overhead
+
+_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+def parse_bytes(text: str) -> int:
+    """'512M', '4G', '1.5g', '1000000' (bytes; K/M/G/T are powers of 1024, 'B' optional)."""
+    m = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?)\s*([kKmMgGtT]?)[bB]?\s*", str(text))
+    if m is None:
+        raise ValueError(f"memory: expected a size such as 512M or 4G, got {text!r}")
+    v = float(m.group(1)) * _UNITS[m.group(2).lower()]
+    if not 0 < v < 1 << 50:
+        raise ValueError(f"memory: must lie in (0, 1P] bytes, got {text!r}")
+    return int(v)
+
+
+def _paths(scene, cfg: RenderConfig) -> int:
+    return scene.camera.height * scene.camera.width * cfg.spp
+
+
+def bytes_per_path(scene, cfg: RenderConfig) -> float:
+    """XLA's memory analysis of the pass compiled with chunks of PROBE_PATHS paths (or the
+    whole pass if it is smaller), per path of a chunk."""
+    from ._render import pass_key, render_pass
+
+    n = _paths(scene, cfg)
+    probe = max(d for d in range(1, min(n, PROBE_PATHS) + 1) if n % d == 0)
+    c = dataclasses.replace(cfg, chunks=n // probe)
+    exe = jax.jit(render_pass, static_argnums=2).lower(scene, pass_key(0, 0), c, 0).compile()
+    m = exe.memory_analysis()
+    total = m.temp_size_in_bytes + m.output_size_in_bytes + m.argument_size_in_bytes
+    return total / probe
+
+
+def chunks_for_memory(scene, cfg: RenderConfig, budget: int, per_path: float | None = None
+                      ) -> int:
+    """The fewest chunks (dividing the pass's paths) whose chunk fits `budget` bytes."""
+    n = _paths(scene, cfg)
+    per_path = bytes_per_path(scene, cfg) if per_path is None else per_path
+    fit = int(budget // per_path)
+    smallest = min(MIN_CHUNK, n)
+    if fit < smallest:
+        raise ValueError(f"memory: {budget} bytes is too small for one chunk: "
+                         f"{smallest} paths need about {int(per_path * smallest)} bytes "
+                         f"({per_path:.0f} per path, {cfg.algorithm} at depth {cfg.max_depth})")
+    for k in range(1, n + 1):
+        if n % k == 0 and n // k <= fit:
+            return k
+    return n  # unreachable: k = n gives chunks of one path

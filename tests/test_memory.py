@@ -1,0 +1,110 @@
+"""Passes in bounded memory (issue 11; `RenderConfig.chunks`, jaxvcm/_memory.py).
+
+A chunked pass traces its paths in `chunks` groups one after the other: chunk c's camera
+vertices merge with chunk c's photons only (eta = pi r^2 N/chunks), while every chunk's
+light paths splat onto the whole film with 1/N (light tracing's count stays N). It is a
+different unbiased estimator of the same image, so the test is statistical: the image mean
+of VCM (every technique: emitter hits, NEE, light tracing, connections, merging) over 400
+independent passes, chunks = 4 against chunks = 1, agrees within 4 combined standard
+errors, and each standard error is below 1/4 of 5 % of the mean, so a 5 % bias (say, light
+tracing counted once per chunk, a 4x error, or merges normalised by N instead of N/chunks)
+would fail. The memory budget's chunk count comes from XLA's memory analysis of a probe
+chunk; a budget too small for one chunk is one error line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxvcm
+from jaxvcm import _memory
+from jaxvcm._render import pass_key, render_pass
+from jaxvcm.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+SKY = ROOT / "scenes" / "pool_sky.toml"
+PASSES = 400
+
+
+def _pass_means(scene, cfg, n):
+    """Image means of n passes (one jitted pass at a time: under vmap the queues' conds
+    would become selects and every round would run)."""
+    f = jax.jit(render_pass, static_argnums=2)
+    means = []
+    for i in range(n):
+        img, diag = f(scene, pass_key(11, i), cfg, jnp.int32(i))
+        assert not bool(diag.merge_overflow) and int(diag.nonfinite) == 0
+        means.append(float(np.mean(np.asarray(img, np.float64))))
+    m = np.asarray(means)
+    return m.mean(), m.std(ddof=1) / np.sqrt(n), int(diag.light_paths)
+
+
+def test_chunked_vcm_agrees_with_one_chunk():
+    scene = jaxvcm.load_scene(SKY, width=16, height=12)
+    res = {}
+    for ch in (1, 4):
+        cfg = jaxvcm.RenderConfig(algorithm="vcm", max_depth=4, chunks=ch)
+        res[ch] = _pass_means(scene, cfg, PASSES)
+    (m1, s1, n1), (m4, s4, n4) = res[1], res[4]
+    assert n1 == n4 == 16 * 12  # the same light paths per pass, in 4 chunks of 48
+    for m, s in ((m1, s1), (m4, s4)):
+        assert m > 0 and s < 0.05 * m / 4, (m, s)  # a 5 % difference is > 4 SE
+    z = (m4 - m1) / np.hypot(s1, s4)
+    assert abs(z) < 4, f"chunks=4 mean {m4:.5g} vs one chunk {m1:.5g}: {z:.2f} SE"
+
+
+def test_chunks_must_divide_the_paths():
+    scene = jaxvcm.load_scene(SKY, width=16, height=12)
+    cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2, chunks=5)
+    with pytest.raises(ValueError, match=r"^config.chunks: 5 does not divide the pass's 192 "):
+        render_pass(scene, pass_key(0, 0), cfg)
+
+
+@pytest.mark.parametrize("text,value", [("512", 512), ("4K", 4096), ("1.5m", 1572864),
+                                        ("2GB", 2 << 30), (" 1t ", 1 << 40)])
+def test_parse_bytes(text, value):
+    assert _memory.parse_bytes(text) == value
+
+
+@pytest.mark.parametrize("text", ["", "4Q", "-1G", "0", "1e9", "G"])
+def test_parse_bytes_rejects(text):
+    with pytest.raises(ValueError, match="^memory: "):
+        _memory.parse_bytes(text)
+
+
+@pytest.mark.parametrize("budget,chunks", [
+    (768 * 1000, 1),  # 32 x 24 = 768 paths at 1000 B each: the whole pass fits
+    (384 * 1000, 2),  # 384 paths per chunk
+    (300 * 1000, 3),  # 256 paths: the fewest chunks dividing 768 with <= 300 paths
+])
+def test_chunks_for_memory_is_the_fewest_that_fit(budget, chunks):
+    scene = jaxvcm.load_scene(SKY, width=32, height=24)
+    cfg = jaxvcm.RenderConfig(algorithm="vcm")
+    assert _memory.chunks_for_memory(scene, cfg, budget, per_path=1000.0) == chunks
+
+
+def test_chunks_for_memory_below_the_smallest_chunk():
+    scene = jaxvcm.load_scene(SKY, width=32, height=24)
+    cfg = jaxvcm.RenderConfig(algorithm="vcm")
+    with pytest.raises(ValueError, match=r"^memory: 200000 bytes is too small for one "
+                                         r"chunk: 256 paths need about 256000 bytes"):
+        _memory.chunks_for_memory(scene, cfg, 200_000, per_path=1000.0)
+
+
+def test_memory_budget_too_small_is_one_line(capsys, tmp_path, monkeypatch):
+    """Through the CLI, with the real probe (XLA's memory analysis of PT at depth 2)."""
+    monkeypatch.chdir(tmp_path)
+    rc = main(["render", str(SKY), "--algorithm", "pt", "--passes", "1", "--width", "16",
+               "--height", "12", "--max-depth", "2", "--quiet", "--memory", "1K"])
+    _, err = capsys.readouterr()
+    assert rc == 2, err
+    assert err.startswith("jaxvcm: error: memory: 1024 bytes is too small for one chunk: ")
+    assert len(err.strip().splitlines()) == 1
+    scene = jaxvcm.load_scene(SKY, width=16, height=12)
+    per = _memory.bytes_per_path(scene, jaxvcm.RenderConfig(algorithm="pt", max_depth=2))
+    assert 100 < per < 1e6  # bytes of working memory per path: sane, and measured
