@@ -79,6 +79,16 @@ for n in (1, 2):
     assert rc == 0
 a, b = (jaxvcm.read_exr(os.path.join(d, f"d{n}.exr")) for n in (1, 2))
 out["cli"] = rel(a, b)
+# the fit's Jacobian (scenes x regions x keys) with its 8 passes spread over 4 devices
+from jaxvcm._fit._model import Region, region_colours_fn
+small = jaxvcm.load_scene(sys.argv[1], width=8, height=8)
+regs = [Region("r", 0, (1, 4, 7, 8), (0.1, 0.1, 0.1)), Region("s", 0, (0, 0, 8, 3), (0.1,) * 3)]
+fcfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=4, rr_depth=100)  # floor via the surface
+theta = np.log(np.array([0.3, 0.1, 0.03, 0.05, 0.02, 0.05], np.float32))
+jac = [np.asarray(jax.jit(jax.jacfwd(lambda t: region_colours_fn([small], regs, fcfg, 8, 3,
+                                                                 devices=ds)(t)[0]))(theta))
+       for ds in ([jax.local_devices()[0]], None)]
+out["fit_jac"] = {"rel": rel(jac[0], jac[1]), "peak": float(np.abs(jac[0]).max())}
 out["meta"] = json.load(open(os.path.join(d, "d2.json")))
 print("RESULT " + json.dumps(out))
 """
@@ -111,6 +121,8 @@ def test_one_two_four_devices_agree(tmp_path):
     assert res["resume_seed"] is not None and res["resume_seed"].startswith("resume: "), res
     assert "seed" in res["resume_seed"] and "\n" not in res["resume_seed"]
     assert res["cli"] <= RTOL
+    j = res["fit_jac"]
+    assert j["peak"] > 0 and j["rel"] <= RTOL, j  # the passes' mean: a reduction over devices
     assert res["meta"]["devices"] == 2 and res["meta"]["passes"] == 3
 
 

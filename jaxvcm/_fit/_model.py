@@ -29,6 +29,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._config import RenderConfig
 from .._render import pass_key, render_pass
@@ -131,14 +132,29 @@ def _groups(scenes: Sequence, anonymous: Callable) -> list[tuple[list[int], obje
     return [(idx, jax.tree.map(lambda *a: jnp.stack(a), *members)) for idx, members in groups]
 
 
+def _shard_passes(x, devices):
+    """`x` [P, ...] laid out over the largest number of `devices` that divides P (a
+    sharding constraint: jit's partitioner then splits the vmap over passes, and with it
+    the Jacobian's columns' work, over the devices; the pass mean becomes a reduction)."""
+    P_ = x.shape[0]
+    n = max(d for d in range(1, len(devices) + 1) if P_ % d == 0)
+    if n == 1:
+        return x
+    mesh = Mesh(np.array(devices[:n]), ("passes",))
+    return jax.lax.with_sharding_constraint(x, NamedSharding(mesh, PartitionSpec("passes")))
+
+
 def region_colours(scenes: Sequence, regions: Sequence[Region], passes: int, seed: int,
-                   anonymous: Callable, params: Callable, render: Callable):
+                   anonymous: Callable, params: Callable, render: Callable, devices=None):
     """The forward model shared by both fits -> fn(theta, keys, indices) = (region colours
     [R, C] in the film's space, merge overflow flag): pure, jit- and jacfwd-able.
 
     params(theta) -> p (once per call); render(scene, p, key, i) -> (image, overflow) of one
     pass of one (unstacked) scene. Default keys: pass_key(seed, i), i < passes; other keys
-    [P] with pass indices [P] render other passes with the same program."""
+    [P] with pass indices [P] render other passes with the same program. The passes (and so
+    the fit's Jacobian, scenes x regions x keys) are spread over `devices` (default: every
+    local device; `_shard_passes`); the values do not depend on how many, to float32 rounding of the mean."""
+    devs = jax.local_devices() if devices is None else list(devices)
     groups = _groups(scenes, anonymous)
     keys = jnp.stack([pass_key(seed, i) for i in range(passes)])
     idx = jnp.arange(passes, dtype=jnp.int32)
@@ -149,6 +165,7 @@ def region_colours(scenes: Sequence, regions: Sequence[Region], passes: int, see
 
     def fn(theta, keys=keys, idx=idx):
         p = params(theta)
+        keys, idx = _shard_passes(keys, devs), _shard_passes(idx, devs)
         images = []
         overflow = jnp.zeros((), bool)
         for _, stacked in groups:
@@ -174,7 +191,7 @@ def _with_water(scene: Scene, sigma_a, sigma_s) -> Scene:
 
 
 def region_colours_fn(scenes: Sequence[Scene], regions: Sequence[Region], config: RenderConfig,
-                      passes: int, seed: int):
+                      passes: int, seed: int, devices=None):
     """RGB scenes: theta [2C] = (ln sigma_a, ln sigma_s) -> (region colours [R, C] linear
     sRGB, merge overflow flag); see `region_colours` (`fn(theta, keys, indices)`)."""
     C = scenes[0].channels
@@ -188,7 +205,7 @@ def region_colours_fn(scenes: Sequence[Scene], regions: Sequence[Region], config
         return img, diag.merge_overflow
 
     return region_colours(scenes, regions, passes, seed,
-                          lambda s: dataclasses.replace(s, name="fit"), params, render)
+                          lambda s: dataclasses.replace(s, name="fit"), params, render, devices)
 
 
 def _to_values(theta, names, linear):
@@ -199,7 +216,7 @@ def _to_values(theta, names, linear):
 
 def spectral_region_colours_fn(spectral: Sequence[SpectralScene], regions: Sequence[Region],
                                names: Sequence[str], config: RenderConfig, passes: int,
-                               seed: int, linear: Sequence[str] = ()):
+                               seed: int, linear: Sequence[str] = (), devices=None):
     """Spectral scenes: theta [n] -> (region XYZ [R, 3], merge overflow flag), theta_j = ln p_j
     of the WaterModel leaf `names[j]`, or p_j itself for names in `linear`; see
     `region_colours`."""
@@ -217,7 +234,7 @@ def spectral_region_colours_fn(spectral: Sequence[SpectralScene], regions: Seque
         return dataclasses.replace(sp, scene=dataclasses.replace(sp.scene, name="fit"))
 
     return region_colours(spectral, regions, passes, seed, anonymous,
-                          lambda theta: _to_values(theta, names, linear), render)
+                          lambda theta: _to_values(theta, names, linear), render, devices)
 
 
 # ------------------------------------------------------------------ residuals
