@@ -86,3 +86,12 @@ def upsert_section(path: Path, tag: str, body: str) -> None:
         new = old + ("" if old.endswith("\n") or not old else "\n") + ("\n" if old else "") + block
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text(path, new)
+
+
+def publish(out: Path, tag: str, res: dict, body: str, log) -> None:
+    """A mode's report: its markdown section of `out` (replaced in place or appended), the
+    JSON sidecar `<out stem>_<tag>.json`, the section on stdout."""
+    upsert_section(out, tag, body)
+    write_json(out.with_name(f"{out.stem}_{tag}.json"), res)
+    print(body)
+    log(f"report -> {out}")

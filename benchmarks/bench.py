@@ -57,6 +57,7 @@ from jaxvcm import __version__
 from . import _common as C
 from . import peer_mitsuba as _peer
 from . import spectral as _sp
+from . import scaling as _sc
 from . import startup as _st
 from . import vertex_merging as _vm
 
@@ -218,6 +219,10 @@ def _parser() -> argparse.ArgumentParser:
                         "persistent cache (first scene; default pt bdpt vcm, size 256)")
     g.add_argument("--startup-runs", type=_int_ge(1), default=3, metavar="N",
                    help="runs per algorithm with --startup, each with a fresh cache (3)")
+    g.add_argument("--scaling", action="store_true",
+                   help="time and memory per pass from 64 k to 4 M paths (chunked), and 1 vs "
+                        "2 forced CPU devices (first scene, default vcm, depth 8; "
+                        "benchmarks/scaling.py)")
     g = p.add_argument_group(
         "peer renderer (writes the 'Peer: Mitsuba 3' section of --out, replaced in place "
         "or appended, <out stem>_peer-mitsuba.json and peer_mitsuba.png next to it; "
@@ -804,6 +809,10 @@ def _settings(argv):
         if a.mode:
             raise _Usage(f"--startup: not allowed with --{a.mode}")
         a.mode = "startup"
+    if a.scaling:
+        if a.mode:
+            raise _Usage(f"--scaling: not allowed with --{a.mode}")
+        a.mode = "scaling"
     if a.peer:
         if a.mode:
             raise _Usage(f"--peer: not allowed with --{a.mode}")
@@ -828,6 +837,7 @@ def _settings(argv):
                  "dispersion": list(_sp.DEFAULT_ALGORITHMS),
                  "profile": list(PROFILE_DEFAULT_ALGORITHMS),
                  "startup": list(_st.DEFAULT_ALGORITHMS),
+                 "scaling": ["vcm"],
                  "peer": ["pt"]}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
@@ -840,6 +850,7 @@ def _settings(argv):
                    "dispersion": _sp.DEFAULT_SCENES,
                    "profile": PROFILE_DEFAULT_SCENES,
                    "startup": PROFILE_DEFAULT_SCENES,
+                   "scaling": PROFILE_DEFAULT_SCENES,
                    "peer": _peer.DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
     names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
                                                      for s in mode_scenes]
@@ -956,6 +967,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "startup":
             _st.run_startup(a, argv, a.scene_paths[0], C.Log(a.quiet))
+            return 0
+        if a.mode == "scaling":
+            _sc.run_scaling(a, argv, a.scene_paths[0], C.Log(a.quiet))
             return 0
         if a.mode == "peer":
             log = C.Log(a.quiet)

@@ -84,10 +84,7 @@ def run_startup(a, argv, scene: Path, log) -> dict:
             f"(first pass {row['cold_pass_s']:.1f} s), warm {row['warm_process_s']:.1f} s "
             f"(first pass {row['warm_pass_s']:.1f} s)")
     body = markdown(res)
-    C.upsert_section(a.out, TAG, body)
-    C.write_json(a.out.with_name(f"{a.out.stem}_{TAG}.json"), res)
-    print(body)
-    log(f"report -> {a.out}")
+    C.publish(a.out, TAG, res, body, log)
     return res
 
 

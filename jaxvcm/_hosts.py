@@ -14,6 +14,7 @@ import os
 
 import jax
 import numpy as np
+from jax.experimental import multihost_utils
 
 
 def _env_int(name: str):
@@ -70,8 +71,6 @@ def agree(values):
     """Process 0's `values` (a tuple of host scalars) on every process."""
     if jax.process_count() == 1:
         return values
-    from jax.experimental import multihost_utils
-
     out = multihost_utils.broadcast_one_to_all(np.asarray(values, np.float64))
     return tuple(np.asarray(out).tolist())
 
@@ -82,8 +81,6 @@ def to_host(x) -> np.ndarray:
         return np.asarray(x)
     if x.is_fully_replicated:
         return np.asarray(x.addressable_data(0))
-    from jax.experimental import multihost_utils
-
     return np.asarray(multihost_utils.process_allgather(x, tiled=True))
 
 
@@ -91,6 +88,4 @@ def broadcast(x: np.ndarray) -> np.ndarray:
     """Process 0's array on every process."""
     if jax.process_count() == 1:
         return x
-    from jax.experimental import multihost_utils
-
     return np.asarray(multihost_utils.broadcast_one_to_all(x))

@@ -8,7 +8,12 @@ per path is not guessed: `bytes_per_path` compiles the pass at a probe chunk of
 (`Compiled.memory_analysis`: temporaries, outputs, arguments), charging the whole of it to
 the probe's paths, which over-estimates by the film's share. `chunks_for_memory` then takes
 the fewest chunks that divide the pass's paths evenly and fit. Measured (docs/benchmarks.md,
-"Bounded memory"): VCM at depth 8 about 16 kB per path, PT 4 kB.
+"Scale-out"): VCM at depth 8 about 16 kB per path, PT 4 kB.
+
+Without a budget, `auto_chunks` uses the device's: 80 % of what its runtime may allocate
+(`Device.memory_stats()["bytes_limit"]`, reported by GPU and TPU runtimes, not by the CPU's),
+and probes only when a rough upper bound (`ROUGH_BYTES`, per path and depth segment, above
+the measured figures) says a single chunk might not fit.
 """
 
 from __future__ import annotations
@@ -19,8 +24,12 @@ import re
 import jax
 
 from ._config import RenderConfig
+from ._integrator import integrate
 
 PROBE_PATHS = 1024
+DEVICE_SHARE = 0.8  # of a device's allocatable memory, for one pass
+ROUGH_BYTES = {"camera": 700, "both": 2500}  # per path per depth segment: upper bounds of
+# the measured PT (4 kB at depth 8: 500 / segment) and VCM (16 kB: 2000 / segment)
 MIN_CHUNK = 256  # paths; smaller chunks are all overhead
 
 _UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
@@ -44,12 +53,10 @@ def _paths(scene, cfg: RenderConfig) -> int:
 def bytes_per_path(scene, cfg: RenderConfig) -> float:
     """XLA's memory analysis of the pass compiled with chunks of PROBE_PATHS paths (or the
     whole pass if it is smaller), per path of a chunk."""
-    from ._render import pass_key, render_pass
-
     n = _paths(scene, cfg)
     probe = max(d for d in range(1, min(n, PROBE_PATHS) + 1) if n % d == 0)
     c = dataclasses.replace(cfg, chunks=n // probe)
-    exe = jax.jit(render_pass, static_argnums=2).lower(scene, pass_key(0, 0), c, 0).compile()
+    exe = jax.jit(integrate, static_argnums=2).lower(scene, jax.random.key(0), c, 0).compile()
     m = exe.memory_analysis()
     total = m.temp_size_in_bytes + m.output_size_in_bytes + m.argument_size_in_bytes
     return total / probe
@@ -70,3 +77,28 @@ def chunks_for_memory(scene, cfg: RenderConfig, budget: int, per_path: float | N
         if n % k == 0 and n // k <= fit:
             return k
     return n  # unreachable: k = n gives chunks of one path
+
+
+def device_budget(device) -> int | None:
+    """DEVICE_SHARE of the memory `device`'s runtime may allocate; None where it reports
+    none (the CPU)."""
+    try:
+        stats = device.memory_stats()
+    except Exception:  # noqa: BLE001 (a backend without memory statistics)
+        return None
+    if not stats or not stats.get("bytes_limit"):
+        return None
+    return int(DEVICE_SHARE * stats["bytes_limit"])
+
+
+def auto_chunks(scene, cfg: RenderConfig, device) -> int:
+    """`cfg.chunks`, or, when `device` reports its memory and a rough upper bound of the
+    one-chunk pass exceeds its budget, `chunks_for_memory` of that budget (one probe
+    compile)."""
+    budget = device_budget(device)
+    if budget is None or cfg.chunks != 1:
+        return cfg.chunks
+    kind = "both" if cfg.techniques.light_paths else "camera"
+    if _paths(scene, cfg) * cfg.max_depth * ROUGH_BYTES[kind] <= budget:
+        return 1
+    return chunks_for_memory(scene, cfg, budget)

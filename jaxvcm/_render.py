@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import os
 import time as _time
 
 import equinox as eqx
@@ -224,7 +225,8 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     seconds; the passes are those an uninterrupted render draws, so the result equals it to
     float32 rounding of the stored mean. `memory` (bytes, or '4G'): trace each pass in as
     many chunks as keep its working memory under it (`_memory.chunks_for_memory`, which
-    sets `config.chunks`)."""
+    sets `config.chunks`); None: the device's memory where it reports one
+    (`_memory.auto_chunks`; on the CPU one chunk)."""
     check_budget(passes, time)
     local = _devices.resolve_devices(devices)
     devs = _devices.mesh_devices(local)
@@ -236,6 +238,8 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
         budget = _memory.parse_bytes(memory) if isinstance(memory, str) else int(memory)
         config = dataclasses.replace(config, chunks=_memory.chunks_for_memory(scene, config,
                                                                               budget))
+    else:  # the device's own memory, where its runtime reports it (GPUs; not the CPU)
+        config = dataclasses.replace(config, chunks=_memory.auto_chunks(scene, config, local[0]))
     state = {"config": config}
     start = None
     if resume:
@@ -304,8 +308,6 @@ def _resume_start(out, scene, scene_path, config, seed):
 
 
 def _read_resume(out, scene, scene_path, config, seed):
-    import os
-
     if not os.path.exists(out):
         return None
     _io.recover_outputs(out)

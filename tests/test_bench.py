@@ -181,3 +181,45 @@ def test_bench_startup_mode(tmp_path, monkeypatch):
     assert row["cold first pass"] == "19.50 s" and row["warm first pass"] == "0.70 s"
     assert json.loads((tmp_path / "b_startup.json").read_text())["rows"][0]["all"][
         "warm_process_s"] == [2.0, 2.5, 2.2]
+
+
+def test_bench_scaling_mode(tmp_path, monkeypatch):
+    # --scaling: the sweep's rows and the devices child are replaced by fixed figures, so
+    # the table, the linearity line (max/min of us per path over the chunked rows) and the
+    # devices speed-up must be exactly those figures'
+    import subprocess as sp
+
+    from benchmarks import scaling as _sc
+
+    a = _bench._settings(["--scaling"])
+    assert a.mode == "scaling" and a.algorithms == ["vcm"]
+    assert [p.stem for p in a.scene_paths] == ["pool"]
+    assert _bench.main(["--scaling", "--startup"]) == 2
+    a = _bench._settings(["--scaling", "--out", str(tmp_path / "b.md")])
+    us = {(256, 1): 50.0, (256, 4): 40.0, (512, 1): 55.0, (512, 16): 38.0,
+          (1024, 64): 40.0, (2048, 256): 44.0}
+
+    def fake_one(scene, alg, size, depth, chunks, passes, log):
+        n = size * size
+        return {"algorithm": alg, "size": size, "paths": n, "chunks": chunks,
+                "compile_s": 30.0, "pass_s": us[size, chunks] * n / 1e6, "passes": passes,
+                "memory_bytes": 2**20 * (n // chunks) // 64, "merge_overflow": False,
+                "us_per_path": us[size, chunks]}
+
+    def fake_run(args, env):
+        assert "--xla_force_host_platform_device_count=2" in env["XLA_FLAGS"]
+        out = "RESULT " + json.dumps({"pt": {"1": 3.0, "2": 2.0}, "vcm": {"1": 6.0, "2": 4.8}})
+        return sp.CompletedProcess(args, 0, out, "")
+
+    monkeypatch.setattr(_sc, "_one", fake_one)
+    monkeypatch.setattr(_sc, "_run_child", fake_run)
+    _sc.run_scaling(a, ["--scaling"], a.scene_paths[0], lambda *x: None)
+    text = (tmp_path / "b.md").read_text()
+    rows = _table(text, "algorithm")
+    assert [(r["image"], r["chunks"]) for r in rows[:6]] == [
+        ("256x256", "1"), ("256x256", "4"), ("512x512", "1"), ("512x512", "16"),
+        ("1024x1024", "64"), ("2048x2048", "256")]
+    assert rows[5]["us / path"] == "44.0" and rows[5]["paths"] == "4,194,304"
+    assert "spans 38.0-44.0 us (max/min 1.16;" in text
+    dev = _table(text.split("2 forced CPU devices", 1)[1], "algorithm")
+    assert [(r["algorithm"], r["speed-up"]) for r in dev] == [("pt", "1.50"), ("vcm", "1.25")]

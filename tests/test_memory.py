@@ -108,3 +108,33 @@ def test_memory_budget_too_small_is_one_line(capsys, tmp_path, monkeypatch):
     scene = jaxvcm.load_scene(SKY, width=16, height=12)
     per = _memory.bytes_per_path(scene, jaxvcm.RenderConfig(algorithm="pt", max_depth=2))
     assert 100 < per < 1e6  # bytes of working memory per path: sane, and measured
+
+
+class _Dev:
+    def __init__(self, stats):
+        self.stats = stats
+
+    def memory_stats(self):
+        return self.stats
+
+
+@pytest.mark.parametrize("stats", [None, {}, {"bytes_limit": 0}])
+def test_no_device_memory_means_one_chunk(stats):
+    scene = jaxvcm.load_scene(SKY, width=32, height=24)
+    cfg = jaxvcm.RenderConfig(algorithm="vcm")
+    assert _memory.device_budget(_Dev(stats)) is None
+    assert _memory.auto_chunks(scene, cfg, _Dev(stats)) == 1
+    assert _memory.device_budget(jax.devices("cpu")[0]) is None  # the CPU reports none
+
+
+def test_device_memory_sets_the_chunks(monkeypatch):
+    """A device reporting 80 GB: a 32x24 VCM pass fits (no probe); one reporting 1 MB: the
+    probe (here a fixed 1000 B per path) gives 768 paths / 800 paths' room -> 1 chunk, and
+    with 375 kB (a 300 kB budget) -> 256-path chunks (3)."""
+    scene = jaxvcm.load_scene(SKY, width=32, height=24)
+    cfg = jaxvcm.RenderConfig(algorithm="vcm")
+    monkeypatch.setattr(_memory, "bytes_per_path", lambda s, c: 1000.0)
+    assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 80 << 30})) == 1
+    assert _memory.device_budget(_Dev({"bytes_limit": 10**6})) == 800_000
+    assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 10**6})) == 1
+    assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 375_000})) == 3
