@@ -1,13 +1,13 @@
 """Passes in a memory budget (issue 11, bounded memory): the chunk count
 (`RenderConfig.chunks`) that keeps one pass's working memory under a budget.
 
-A pass's temporary memory is, to a good approximation, a cost per path of one chunk (the
-subpath records, the techniques' per-lane values, the hash grid) plus the film. The cost
-per path is not guessed: `bytes_per_path` compiles the pass at a probe chunk of
-`PROBE_PATHS` paths and reads XLA's own memory analysis of that program
-(`Compiled.memory_analysis`: temporaries, outputs, arguments), charging the whole of it to
-the probe's paths, which over-estimates by the film's share. `chunks_for_memory` then takes
-the fewest chunks that divide the pass's paths evenly and fit. Measured (docs/benchmarks.md,
+A pass's working memory is, to a good approximation, a cost per path of one chunk (the
+subpath records, the techniques' per-lane values, the hash grid) plus a fixed part (the
+film and the other per-pass arrays). Neither is guessed: `memory_model` compiles the pass at
+two probe chunk sizes and reads XLA's own memory analysis of each program
+(`Compiled.memory_analysis`: temporaries, outputs, arguments), a straight line through the
+two. `chunks_for_memory` then takes the fewest chunks that divide the pass's paths evenly
+and fit. Measured (docs/benchmarks.md,
 "Scale-out"): VCM at depth 8 about 16 kB per path, PT 4 kB.
 
 Without a budget, `auto_chunks` uses the device's: 80 % of what its runtime may allocate
@@ -50,29 +50,44 @@ def _paths(scene, cfg: RenderConfig) -> int:
     return scene.camera.height * scene.camera.width * cfg.spp
 
 
-def bytes_per_path(scene, cfg: RenderConfig) -> float:
-    """XLA's memory analysis of the pass compiled with chunks of PROBE_PATHS paths (or the
-    whole pass if it is smaller), per path of a chunk."""
-    n = _paths(scene, cfg)
-    probe = max(d for d in range(1, min(n, PROBE_PATHS) + 1) if n % d == 0)
-    c = dataclasses.replace(cfg, chunks=n // probe)
+def _probe_bytes(scene, cfg: RenderConfig, paths: int) -> int:
+    """XLA's memory analysis (temporaries + outputs + arguments) of the pass compiled with
+    chunks of `paths` paths."""
+    c = dataclasses.replace(cfg, chunks=_paths(scene, cfg) // paths)
     exe = jax.jit(integrate, static_argnums=2).lower(scene, jax.random.key(0), c, 0).compile()
     m = exe.memory_analysis()
-    total = m.temp_size_in_bytes + m.output_size_in_bytes + m.argument_size_in_bytes
-    return total / probe
+    return int(m.temp_size_in_bytes + m.output_size_in_bytes + m.argument_size_in_bytes)
 
 
-def chunks_for_memory(scene, cfg: RenderConfig, budget: int, per_path: float | None = None
-                      ) -> int:
-    """The fewest chunks (dividing the pass's paths) whose chunk fits `budget` bytes."""
+def memory_model(scene, cfg: RenderConfig) -> tuple[float, float]:
+    """(fixed bytes, bytes per path of a chunk) of the pass: two probe compiles at chunks
+    of about PROBE_PATHS and 2 PROBE_PATHS paths, a straight line through them (the film and
+    the other per-pass arrays are the fixed part). A pass of at most PROBE_PATHS paths is
+    probed once, whole, and charged entirely to its paths."""
     n = _paths(scene, cfg)
-    per_path = bytes_per_path(scene, cfg) if per_path is None else per_path
-    fit = int(budget // per_path)
+    p1 = max(d for d in range(1, min(n, PROBE_PATHS) + 1) if n % d == 0)
+    p2 = max(d for d in range(1, min(n, 2 * PROBE_PATHS) + 1) if n % d == 0)
+    m1 = _probe_bytes(scene, cfg, p1)
+    if p2 == p1:
+        return 0.0, m1 / p1
+    m2 = _probe_bytes(scene, cfg, p2)
+    per = max((m2 - m1) / (p2 - p1), 1.0)
+    return max(m1 - per * p1, 0.0), per
+
+
+def chunks_for_memory(scene, cfg: RenderConfig, budget: int,
+                      model: tuple[float, float] | None = None) -> int:
+    """The fewest chunks (dividing the pass's paths) whose pass fits `budget` bytes by
+    `model` = (fixed, per path) (default: `memory_model`)."""
+    n = _paths(scene, cfg)
+    fixed, per_path = memory_model(scene, cfg) if model is None else model
+    fit = int((budget - fixed) // per_path)
     smallest = min(MIN_CHUNK, n)
     if fit < smallest:
         raise ValueError(f"memory: {budget} bytes is too small for one chunk: "
-                         f"{smallest} paths need about {int(per_path * smallest)} bytes "
-                         f"({per_path:.0f} per path, {cfg.algorithm} at depth {cfg.max_depth})")
+                         f"{smallest} paths need about {int(fixed + per_path * smallest)} "
+                         f"bytes ({fixed:.0f} fixed + {per_path:.0f} per path, "
+                         f"{cfg.algorithm} at depth {cfg.max_depth})")
     for k in range(1, n + 1):
         if n % k == 0 and n // k <= fit:
             return k

@@ -146,8 +146,9 @@ def _parser() -> argparse.ArgumentParser:
                         "(default: all local devices; the image does not depend on N)")
     r.add_argument("--memory", default=None, metavar="SIZE",
                    help="working memory per pass, e.g. 4G: each pass is traced in as many "
-                        "chunks of paths as keep it under SIZE (measured by compiling a probe "
-                        "chunk); default: one chunk")
+                        "chunks of paths as keep it under SIZE (measured by compiling two "
+                        "probe chunks); default: the device's memory where it reports one, "
+                        "else one chunk")
     r.add_argument("--resume", action="store_true",
                    help="continue the render in --out (same scene, seed, algorithm and "
                         "settings) up to --passes in all, or for --time more seconds")

@@ -59,6 +59,15 @@ a = jaxvcm.render(scene, "vcm", time=1.0, config=cfg, progress=False, devices=4,
 n = json.load(open(os.path.join(d, "tb.json")))["passes"]
 b = jaxvcm.render(scene, "vcm", passes=n, config=cfg, progress=False, devices=1)
 out["time"] = {"passes": n, "rel": rel(b, a), "exr": rel(b, jaxvcm.read_exr(tb))}
+# snapshots on 4 devices (each one a psum of the device sums): 3 batches, snapshots after
+# the second; the final set checks out and equals one device
+sn = os.path.join(d, "sn.exr")
+a = jaxvcm.render(scene, "vcm", passes=12, config=cfg, progress=False, devices=4, out=sn,
+                  snapshot_every=1e-6)
+b = jaxvcm.render(scene, "vcm", passes=12, config=cfg, progress=False, devices=1)
+out["snap"] = {"rel": rel(b, a), "exr": rel(b, jaxvcm.read_exr(sn)),
+               "problems": jaxvcm.check_outputs(sn),
+               "passes": json.load(open(os.path.join(d, "sn.json")))["passes"]}
 # resume: 3 passes on 2 devices, then up to 7 on 4 devices
 r = os.path.join(d, "r.exr")
 jaxvcm.render(scene, "vcm", passes=3, config=cfg, progress=False, devices=2, out=r)
@@ -117,6 +126,8 @@ def test_one_two_four_devices_agree(tmp_path):
     t = res["time"]
     assert t["passes"] >= 4 and t["passes"] % 4 == 0, t
     assert t["rel"] <= RTOL and t["exr"] <= RTOL, t
+    sn = res["snap"]
+    assert sn["passes"] == 12 and sn["problems"] == [] and max(sn["rel"], sn["exr"]) <= RTOL, sn
     assert res["resume"]["passes"] == 7 and res["resume"]["rel"] <= RTOL, res["resume"]
     assert res["resume_seed"] is not None and res["resume_seed"].startswith("resume: "), res
     assert "seed" in res["resume_seed"] and "\n" not in res["resume_seed"]

@@ -85,7 +85,7 @@ def test_parse_bytes_rejects(text):
 def test_chunks_for_memory_is_the_fewest_that_fit(budget, chunks):
     scene = jaxvcm.load_scene(SKY, width=32, height=24)
     cfg = jaxvcm.RenderConfig(algorithm="vcm")
-    assert _memory.chunks_for_memory(scene, cfg, budget, per_path=1000.0) == chunks
+    assert _memory.chunks_for_memory(scene, cfg, budget, model=(0.0, 1000.0)) == chunks
 
 
 def test_chunks_for_memory_below_the_smallest_chunk():
@@ -93,7 +93,7 @@ def test_chunks_for_memory_below_the_smallest_chunk():
     cfg = jaxvcm.RenderConfig(algorithm="vcm")
     with pytest.raises(ValueError, match=r"^memory: 200000 bytes is too small for one "
                                          r"chunk: 256 paths need about 256000 bytes"):
-        _memory.chunks_for_memory(scene, cfg, 200_000, per_path=1000.0)
+        _memory.chunks_for_memory(scene, cfg, 200_000, model=(0.0, 1000.0))
 
 
 def test_memory_budget_too_small_is_one_line(capsys, tmp_path, monkeypatch):
@@ -106,8 +106,8 @@ def test_memory_budget_too_small_is_one_line(capsys, tmp_path, monkeypatch):
     assert err.startswith("jaxvcm: error: memory: 1024 bytes is too small for one chunk: ")
     assert len(err.strip().splitlines()) == 1
     scene = jaxvcm.load_scene(SKY, width=16, height=12)
-    per = _memory.bytes_per_path(scene, jaxvcm.RenderConfig(algorithm="pt", max_depth=2))
-    assert 100 < per < 1e6  # bytes of working memory per path: sane, and measured
+    fixed, per = _memory.memory_model(scene, jaxvcm.RenderConfig(algorithm="pt", max_depth=2))
+    assert fixed == 0.0 and 100 < per < 1e6  # 192 paths: one probe, all charged per path
 
 
 class _Dev:
@@ -133,8 +133,37 @@ def test_device_memory_sets_the_chunks(monkeypatch):
     with 375 kB (a 300 kB budget) -> 256-path chunks (3)."""
     scene = jaxvcm.load_scene(SKY, width=32, height=24)
     cfg = jaxvcm.RenderConfig(algorithm="vcm")
-    monkeypatch.setattr(_memory, "bytes_per_path", lambda s, c: 1000.0)
+    monkeypatch.setattr(_memory, "memory_model", lambda s, c: (0.0, 1000.0))
     assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 80 << 30})) == 1
     assert _memory.device_budget(_Dev({"bytes_limit": 10**6})) == 800_000
     assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 10**6})) == 1
     assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 375_000})) == 3
+
+
+def test_a_1024_vcm_pass_in_a_budget_has_the_untiled_mean():
+    """A 1024x1024 VCM pass (pool_sky, depth 2: emitter hits, NEE, light tracing, merging)
+    under a 192 MiB budget: `chunks_for_memory` (two probe compiles) picks more than one
+    chunk, and the pass completes without overflow or non-finite values. Its image agrees
+    with 16 untiled passes at 128x128, where one chunk fits: a pixel is the box over its
+    film area, so row block c (16 rows at 1024, rows 2c, 2c + 1 at 128) has the same
+    expected mean at both sizes, and the differences d_c of the 64 block means (spatial
+    variation cancels) give z = mean(d) / SE(d) within 4, with SE(d) below 1.25 % of the
+    mean so that a 5 % bias fails."""
+    big = jaxvcm.load_scene(SKY, width=1024, height=1024)
+    cfg = jaxvcm.RenderConfig(algorithm="vcm", max_depth=2)
+    k = _memory.chunks_for_memory(big, cfg, 192 << 20)
+    assert k > 1 and (1024 * 1024) % k == 0
+    f = jax.jit(render_pass, static_argnums=2)
+    img, diag = f(big, pass_key(21, 0), jaxvcm.RenderConfig(algorithm="vcm", max_depth=2,
+                                                           chunks=k), jnp.int32(0))
+    assert not bool(diag.merge_overflow) and int(diag.nonfinite) == 0
+    a = np.asarray(img, np.float64).reshape(64, -1).mean(axis=1)
+    small = jaxvcm.load_scene(SKY, width=128, height=128)
+    ref = np.mean([np.asarray(f(small, pass_key(22, i), cfg, jnp.int32(i))[0], np.float64)
+                   for i in range(16)], axis=0)
+    b = ref.reshape(64, -1).mean(axis=1)
+    d = a - b
+    se = d.std(ddof=1) / np.sqrt(len(d))
+    assert se < 0.05 * b.mean() / 4, (se, b.mean())
+    z = d.mean() / se
+    assert abs(z) < 4, f"1024x1024 in {k} chunks: mean {a.mean():.5g} vs {b.mean():.5g}, {z:.2f} SE"
