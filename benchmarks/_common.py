@@ -95,3 +95,9 @@ def publish(out: Path, tag: str, res: dict, body: str, log) -> None:
     write_json(out.with_name(f"{out.stem}_{tag}.json"), res)
     print(body)
     log(f"report -> {out}")
+
+
+def section_head(title: str, res: dict) -> list[str]:
+    """A mode's section header: title, the machine line and the command."""
+    return [f"## {title}", "", f"- {machine_line(res['machine'])}",
+            f"- command: `{res['command']}`"]

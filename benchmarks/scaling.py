@@ -113,9 +113,7 @@ def run_scaling(a, argv, scene: Path, log) -> dict:
 
 
 def markdown(res: dict) -> str:
-    L = ["## Scale-out: paths per pass, memory, devices", "",
-         f"- {C.machine_line(res['machine'])}",
-         f"- command: `{res['command']}`",
+    L = C.section_head("Scale-out: paths per pass, memory, devices", res) + [
          f"- {res['scene']}, depth {res['max_depth']}; paths = pixels = light paths per pass; "
          f"chunks of {res['chunk']} paths (`RenderConfig.chunks`); memory = XLA's memory "
          "analysis of the compiled pass (temporaries + outputs + arguments); time = median "

@@ -89,9 +89,7 @@ def run_startup(a, argv, scene: Path, log) -> dict:
 
 
 def markdown(res: dict) -> str:
-    L = ["## Startup: cold and warm first pass", "",
-         f"- {C.machine_line(res['machine'])}",
-         f"- command: `{res['command']}`",
+    L = C.section_head("Startup: cold and warm first pass", res) + [
          f"- `jaxvcm render {res['scene']} --passes 1 --width {res['size']} --height "
          f"{res['size']} --max-depth {res['max_depth']} --quiet` in a fresh process, twice "
          "with one persistent compilation cache that starts empty: *cold* compiles, *warm* "

@@ -143,26 +143,34 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_processes_equal_one(tmp_path):
-    """Two processes on loopback (`--coordinator`, gloo collectives), one CPU device each:
-    process 0 writes the set, process 1 writes nothing; the image equals the one-process
-    render of the same 5 passes (rtol 1e-5, as above)."""
-    args = ["-m", "jaxvcm", "render", str(SKY), "--algorithm", "vcm", "--passes", "5",
-            "--width", "8", "--height", "6", "--max-depth", "3", "--quiet"]
-    two, one = str(tmp_path / "two.exr"), str(tmp_path / "one.exr")
+def _two_processes(args: list[str], out: str) -> list[tuple[str, str]]:
     port = _free_port()
-    procs = [subprocess.Popen([sys.executable, *args, "--out", two, "--coordinator",
+    procs = [subprocess.Popen([sys.executable, *args, "--out", out, "--coordinator",
                                f"127.0.0.1:{port}", "--num-processes", "2", "--process-id",
                                str(i)], env=_env(), stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for i in (0, 1)]
     outs = [p.communicate(timeout=900) for p in procs]
-    for p, (so, se) in zip(procs, outs):
+    for p, (_, se) in zip(procs, outs):
         assert p.returncode == 0, se[-3000:]
+    return outs
+
+
+def test_two_processes_equal_one(tmp_path):
+    """Two processes on loopback (`--coordinator`, gloo collectives), one CPU device each:
+    process 0 writes the set, process 1 writes nothing; 3 passes, then `--resume` up to 5
+    (process 0 reads the set and broadcasts it), equal the one-process render of the same
+    5 passes (rtol 1e-5, as above)."""
+    args = ["-m", "jaxvcm", "render", str(SKY), "--algorithm", "vcm", "--width", "8",
+            "--height", "6", "--max-depth", "3", "--quiet"]
+    two, one = str(tmp_path / "two.exr"), str(tmp_path / "one.exr")
+    outs = _two_processes(args + ["--passes", "3"], two)
     # (gloo prints its own "connected" line to stdout)
     assert outs[0][0].strip().splitlines()[-1] == two and two not in outs[1][0]
+    assert json.load(open(tmp_path / "two.json"))["passes"] == 3
+    _two_processes(args + ["--passes", "5", "--resume"], two)
     meta = json.load(open(tmp_path / "two.json"))
     assert meta["processes"] == 2 and meta["devices"] == 2 and meta["passes"] == 5
-    assert main(args[2:] + ["--out", one]) == 0
+    assert main(args[2:] + ["--passes", "5", "--out", one]) == 0
     a, b = jaxvcm.read_exr(one), jaxvcm.read_exr(two)
     assert np.abs(a).max() > 0
     assert np.max(np.abs(a - b)) <= RTOL * np.abs(a).max()
