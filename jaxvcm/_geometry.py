@@ -177,24 +177,39 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
     k = jnp.argmax(change)
     a, b = ts[k], ts[k + 1]
     fa, fb = fs[k], fs[k + 1]
-    def illinois(_, c):
-        a, b, fa, fb, side = c  # side: which end was kept last time (Illinois halving)
+
+    def secant(a, b, fa, fb):
         denom = fb - fa
         m = jnp.where(denom != 0, (a * fb - b * fa) / jnp.where(denom != 0, denom, 1.0),
                       0.5 * (a + b))
-        m = jnp.clip(m, jnp.minimum(a, b), jnp.maximum(a, b))
-        fm = f(m)
+        return jnp.clip(m, jnp.minimum(a, b), jnp.maximum(a, b))
+
+    def keep(a, b, fa, fb, side, m, fm):
+        # side: which end was kept last time (Illinois: if the same end survives twice,
+        # halve its function value)
         left = (fm >= 0) != (fa >= 0)  # root in [a, m]: b <- m
-        # Illinois: if the same end survives twice, halve its function value
         fa = jnp.where(left & (side == 1), 0.5 * fa, fa)
         fb = jnp.where(~left & (side == -1), 0.5 * fb, fb)
         b, fb = jnp.where(left, m, b), jnp.where(left, fm, fb)
         a, fa = jnp.where(left, a, m), jnp.where(left, fa, fm)
         return a, b, fa, fb, jnp.where(left, 1, -1).astype(jnp.int32)
 
+    def illinois(_, c):
+        # software-pipelined: the carry holds the new point m and f(m), evaluated by the
+        # previous iteration, so f (the waves' sines) is the body's only expensive output.
+        # With f(m) computed in the body and used by the five bracket updates, XLA's CPU
+        # backend fuses a copy of f into each update (five times the sines: 3.3 ms
+        # against 0.7 ms per 8192 rays); the values are the same bit for bit.
+        a, b, fa, fb, side = keep(*c)
+        m = secant(a, b, fa, fb)
+        return a, b, fa, fb, side, m, f(m)
+
     # a rolled loop: one copy of the step in the program (compile time), same arithmetic
-    a, b, fa, fb, _ = jax.lax.fori_loop(0, refine, illinois,
-                                        (a, b, fa, fb, jnp.zeros((), jnp.int32)))
+    m = secant(a, b, fa, fb)
+    c = (a, b, fa, fb, jnp.zeros((), jnp.int32), m, f(m))
+    if refine > 0:
+        c = keep(*jax.lax.fori_loop(0, refine - 1, illinois, c))
+    a, b, fa, fb, _ = c[:5]
     t = jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b)
     h, hx, hz = water_height(w, o.x + t * d.x, o.z + t * d.z)
     ft = o.y + t * d.y - h
