@@ -14,6 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from . import _vec as vec
+from ._queue import masked_map
 from ._scene import SHAPE_NONE, SHAPE_RECT, SHAPE_SPHERE, SHAPE_WATER, Rects, Scene, Spheres, Water
 from ._vec import Vec3
 
@@ -219,6 +220,47 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
     return jnp.where(ok, t, INF)
 
 
+def meets_slab(w: Water, o: Vec3, d: Vec3, tmin, tmax) -> Array:
+    """The ray's interval (tmin, tmax) meets the box that contains the surface (the first
+    step of `intersect_water`): a ray that does not cannot cross the water."""
+    ylo, yhi = water_slab(w)
+    fp = w.footprint
+    t0, t1 = _slab_interval(Vec3(fp[0], ylo, fp[2]), Vec3(fp[1], yhi, fp[3]), o, d, tmin, tmax)
+    return t0 < t1
+
+
+def slope_bound(w: Water) -> Array:
+    """L = sum |A_i| |k_i| >= |grad h| everywhere: the steepest the surface can be."""
+    return jnp.sum(jnp.abs(w.amp) * jnp.sqrt(w.kx * w.kx + w.kz * w.kz))
+
+
+def steeper_than_surface(w: Water, d: Vec3) -> Array:
+    """|d_y| > L |d_xz| (with a 1 % margin): along such a ray f(t) = o_y + t d_y - h is
+    strictly monotone (f' = d_y - grad h . d_xz keeps the sign of d_y), so it crosses the
+    surface at most once, inside the slab interval, and that interval is a bracket."""
+    return jnp.abs(d.y) > 1.01 * slope_bound(w) * jnp.sqrt(d.x * d.x + d.z * d.z)
+
+
+def water_hits(w: Water, o: Vec3, d: Vec3, want, steps: int, split: int) -> Array:
+    """`intersect_water` on (0, inf) for a batch of rays [B], run only where `want` holds
+    and the ray meets the surface's box (`meets_slab`); inf elsewhere, which is
+    `intersect_water`'s own answer for a ray that misses the box. Two work queues
+    (`_queue.masked_map`), because under `vmap` every lane would pay for every step:
+      * rays steeper than the surface (`steeper_than_surface`: at most one crossing, and
+        the slab interval brackets it) skip the march: `intersect_water` with one
+        segment, the same refinement from the wider bracket;
+      * the shallow rays march `steps` segments as before.
+    In a 256x256 depth-8 pass of the pool about half the rays never meet the box (46 %
+    of VCM's, 54 % of PT's) and 5 % are shallow and meet it (`docs/design.md`)."""
+    meet = want & jax.vmap(meets_slab, in_axes=(None, 0, 0, None, None))(w, o, d, 0.0, INF)
+    steep = jax.vmap(steeper_than_surface, in_axes=(None, 0))(w, d)
+    t_steep = masked_map(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, 1), meet & steep,
+                         (o, d), INF, split)
+    t_march = masked_map(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, steps),
+                         meet & ~steep, (o, d), INF, 4 * split)
+    return jnp.where(steep, t_steep, t_march)
+
+
 def inside_water(w: Water, p: Vec3) -> Array:
     """Membership of the water body: inside the footprint, above the floor, below the surface."""
     if not w.enabled:
@@ -230,9 +272,10 @@ def inside_water(w: Water, p: Vec3) -> Array:
 
 # ---------------------------------------------------------------- scene
 def closest_t(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16,
-              any_hit: bool = False) -> tuple[Array, Array, Array]:
+              any_hit: bool = False, t_water=None) -> tuple[Array, Array, Array]:
     """(t, shape, index) of the closest hit over every shape kind (static dispatch); a miss
-    has t = inf, shape = -1. Shadow rays stop here (`unoccluded`)."""
+    has t = inf, shape = -1. Shadow rays stop here (`unoccluded`). `t_water`: the water's
+    distance on (tmin, tmax) when the caller computed it already (`water_hits`)."""
     dt = o.x.dtype
     t = jnp.asarray(INF, dt)
     shape = jnp.asarray(SHAPE_NONE, jnp.int32)
@@ -252,7 +295,8 @@ def closest_t(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 1
         shape = jnp.where(closer, SHAPE_SPHERE, shape)
         index = jnp.where(closer, isph.astype(jnp.int32), index)
     if scene.water.enabled:
-        tw = intersect_water(scene.water, o, d, tmin, tmax, steps=steps, any_hit=any_hit)
+        tw = (intersect_water(scene.water, o, d, tmin, tmax, steps=steps, any_hit=any_hit)
+              if t_water is None else t_water)
         closer = tw < t
         t = jnp.where(closer, tw, t)
         shape = jnp.where(closer, SHAPE_WATER, shape)
@@ -261,9 +305,9 @@ def closest_t(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 1
 
 
 def intersect_scene(scene: Scene, o: Vec3, d: Vec3, tmin=0.0, tmax=INF, steps: int = 16,
-                    any_hit: bool = False) -> Hit:
+                    any_hit: bool = False, t_water=None) -> Hit:
     """Closest hit over every shape kind (static dispatch); a miss has t = inf, shape = -1."""
-    t, shape, index = closest_t(scene, o, d, tmin, tmax, steps, any_hit)
+    t, shape, index = closest_t(scene, o, d, tmin, tmax, steps, any_hit, t_water)
 
     # ---- normal, material, light of the closest hit ----
     tt = jnp.where(jnp.isfinite(t), t, 0.0)

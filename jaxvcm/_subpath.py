@@ -39,6 +39,7 @@ KIND_MEDIUM = 3  # vertex kind of a scattering event in the water (after the MAT
 KIND_NONE = -1
 N_UNIFORMS = 6  # per bounce: channel, distance, direction (2), lobe, roulette
 Q_SPECULAR = 0.95  # local RR survival at delta and medium vertices
+WATER_SPLIT = 4  # rounds per sweep of a trace round's water queue (`geometry.water_hits`)
 
 
 class Vertex(NamedTuple):
@@ -140,16 +141,19 @@ def spawn(p: Vec3, n: Vec3, medium, w: Vec3) -> Vec3:
     return vec.where(medium, p, offset(p, n, w))
 
 
-def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
-         ) -> tuple[WalkState, Vertex]:
-    """Extend one subpath by one segment; `index` = segments before the new vertex minus 1."""
+def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u,
+         t_water=None) -> tuple[WalkState, Vertex]:
+    """Extend one subpath by one segment; `index` = segments before the new vertex minus 1.
+    `t_water`: the water's distance along the ray, when the caller computed it for the
+    batch (`geometry.water_hits`); None: computed here."""
     water = scene.water
     dt = s.o.x.dtype
     C = scene.channels
     kinds = jnp.asarray(scene.materials.kind, jnp.int32)
 
     # ---- intersect, free flight ----
-    hit = geometry.intersect_scene(scene, s.o, s.d, 0.0, jnp.inf, cfg.march_steps)
+    hit = geometry.intersect_scene(scene, s.o, s.d, 0.0, jnp.inf, cfg.march_steps,
+                                   t_water=t_water)
     if water.enabled:
         ff = media.sample_free_flight(water, hit.t, u[0], u[1])
         scatter = s.alive & s.in_water & ff.scatter
@@ -255,7 +259,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     rounds = -(-(n_steps * L) // W)
     if W >= L:
         return _trace_all(scene, cfg, radiance, s0, u, n_steps)
-    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, 0, 0, 0))
+    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, 0, 0, 0, 0))
     # records and lane states packed per dtype: one gather / scatter per dtype and round
     rec_pack = Packed(_dead_records(s0, n_steps, scene.channels), 2)
     state_pack = Packed(s0, 1)
@@ -271,7 +275,10 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         kg = jnp.minimum(k[g], n_steps - 1)
         s_g = state_pack.unpack({d: a[g] for d, a in S.items()})
         mode = radiance if static else radiance[g]
-        s_new, v = vstep(scene, cfg, mode, kg, s_g, u[kg, g])
+        # the water's closest hits only for the rays that meet its box (`water_hits`)
+        tw = (geometry.water_hits(scene.water, s_g.o, s_g.d, lane < L, cfg.march_steps,
+                                  WATER_SPLIT) if scene.water.enabled else None)
+        s_new, v = vstep(scene, cfg, mode, kg, s_g, u[kg, g], tw)
         S = {d: S[d].at[lane].set(x, mode="drop") for d, x in state_pack.pack(s_new).items()}
         k = k.at[lane].add(1, mode="drop")
         # v_k's record at (k, lane); the pdf_rev it computed belongs to v_{k-1} (y_0 / z_0
