@@ -7,11 +7,16 @@ Techniques (s light vertices, t camera vertices, path x_0 .. x_k with k = s + t 
     s, t >= 2      camera vertex z_{t-1} joined to light vertex y_{s-1} of the light
                    subpath with the same index (one light subpath per pixel sample).
 Each technique evaluates its contribution and the pdfs the join changes, and takes its
-MIS weight from the subpaths' partial sums and its join (`_path.family_join_weights`; the
-`parts` argument: (light, camera) `_mis_partial.Partials`), or from the full-path
-assembly (`_path.family_weights`) when `parts` is None (the recursive form, ppm). Each
-family is vectorised over its techniques J and the N paths: arrays are [J, N]; one
-compiled kernel serves every technique of a family whatever the maximum depth.
+MIS weight from the subpaths' partial sums and its join (the `parts` argument: (light,
+camera) `_mis_partial.Partials`), or from the full-path assembly (`_path.family_weights`)
+when `parts` is None (the recursive form, ppm).
+
+With partial sums, next-event estimation, light tracing and the connections are work
+queues over (technique, lane) items (`_queue.masked_map`): only the items whose vertices
+exist and can connect (live, non-delta) run the kernel, one item at a time vmapped, each
+gathering its vertices and its partial-sum entries (`_mis_partial.join_weight`), so the
+cost follows the live vertices, not D x N or D^2 x N slots. Emitter hits and the
+recursive form stay dense families over [J, N]: static slices, one kernel per family.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from . import _subpath as subpath
 from . import _vec as vec
 from ._camera import camera_importance
 from ._config import RenderConfig
+from ._mis_partial import join_weight
 from ._path import (Pdfs, both_dispersed, camera_partials, family_join_weights, family_weights,
                     light_partials, log_n_light_tracing, pdfs, reverse_pdf)
 from ._queue import masked_map
@@ -147,6 +153,9 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
     D = cfg.max_depth
     dt = cam.A.dtype
     js = np.arange(1, D)
+    if parts is not None:
+        val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas)
+        return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
     z, zp = rows(cam, js), rows(cam, js - 1)
     ls = vv(lambda p_, u: lights.sample_light(scene, p_, u[0], u[1], u[2]))(z.p, u_nee)
     is_delta_l = jnp.asarray([k == LIGHT_SUN for k in scene.lights.kind])[ls.light]
@@ -182,14 +191,8 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
     lig = Pdfs(A0[..., None], B0[..., None], jnp.ones((J, N, 1), dt), f1, f1)
     one = jnp.ones((J, N), dt)
     log_n = log_n_light_tracing(cfg, N, dt)
-    if parts is None:
-        w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), pdfs(cam), (None, 1),
-                           A_s, A_s1, B0, one, is_delta_l, inf, log_n, etas)
-    else:  # the light sample's own one-vertex partials, fields [..., J, N]
-        per_j = light_partials(cfg, Pdfs(*(jnp.moveaxis(a, -1, 0) for a in lig)), is_delta_l,
-                               etas)  # fields [..., J, N]
-        w = family_join_weights(cfg, np.ones(J), js + 1, per_j, parts[1],
-                                A_s, A_s1, B0, one, is_delta_l, inf, log_n, lanes_of_L=False)
+    w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), pdfs(cam), (None, 1),
+                       A_s, A_s1, B0, one, is_delta_l, inf, log_n, etas)
     ok = ok & vis
     contrib = jnp.where(ok[..., None], contrib * w[..., None], 0.0)
     return {(1, int(j) + 1): contrib[i] for i, j in enumerate(js)}
@@ -203,6 +206,9 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     D = cfg.max_depth
     dt = lig.A.dtype
     idx = np.arange(0, D)
+    if parts is not None:
+        pix, val = _light_tracing_queued(scene, cfg, lig, e, cam_o, parts, idx, etas)
+        return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
     y, yp = rows(lig, idx), rows(lig, np.maximum(idx - 1, 0))
     J = len(idx)
     co = Vec3(*(jnp.broadcast_to(c, (J, N)) for c in cam_o))
@@ -230,13 +236,8 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     N0 = jnp.ones((1, N), dt)
     camp = Pdfs(N0, N0, N0, jnp.zeros((1, N), bool), jnp.zeros((1, N), bool))  # z_0 alone
     log_n = log_n_light_tracing(cfg, N, dt)
-    if parts is None:
-        wgt = family_weights(cfg, idx + 1, np.ones(J), pdfs(lig), (None, 1), camp, (None, 1),
-                             one, one, B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
-    else:
-        wgt = family_join_weights(cfg, idx + 1, np.ones(J), parts[0],
-                                  camera_partials(cfg, camp, log_n, etas), one, one, B_s1, B_s2,
-                                  e.delta[None], e.infinite[None], log_n)
+    wgt = family_weights(cfg, idx + 1, np.ones(J), pdfs(lig), (None, 1), camp, (None, 1),
+                         one, one, B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
     good = ok & vis & inside
     val = jnp.where(good[..., None], contrib * wgt[..., None], 0.0)
     return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
@@ -254,6 +255,9 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
         return {}
     ss = np.array([p[0] for p in pairs])
     ts = np.array([p[1] for p in pairs])
+    if parts is not None:
+        val = _connections_queued(scene, cfg, lig, cam, e, parts, ss, ts)
+        return {pr: val[i] for i, pr in enumerate(pairs)}
     y, yp = rows(lig, ss - 1), rows(lig, ss - 2)
     z, zp = rows(cam, ts - 1), rows(cam, ts - 2)
     ok = y.alive & ~y.delta & z.alive & ~z.delta
@@ -271,12 +275,195 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
                             y.seg_water)
     B_s2 = jnp.where(((ss - 2) == 0)[:, None] & e.infinite[None], p4, b)
     log_n = log_n_light_tracing(cfg, N, dt)
-    if parts is None:
-        wgt = family_weights(cfg, ss, ts, pdfs(lig), (None, 1), pdfs(cam), (None, 1), A_s, A_s1,
-                             B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
-    else:
-        wgt = family_join_weights(cfg, ss, ts, parts[0], parts[1], A_s, A_s1, B_s1, B_s2,
-                                  e.delta[None], e.infinite[None], log_n)
+    wgt = family_weights(cfg, ss, ts, pdfs(lig), (None, 1), pdfs(cam), (None, 1), A_s, A_s1,
+                         B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
     ok = ok & vis
     val = jnp.where(ok[..., None], contrib * wgt[..., None], 0.0)
     return {pr: val[i] for i, pr in enumerate(pairs)}
+
+
+def _at(ends: PathEnds, i, n) -> PathEnds:
+    """Vertex i of lane n of a subpath (traced indices: a gather per field)."""
+    return jax.tree.map(lambda a: a[i, n], ends)
+
+
+def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds,
+                        e: lights.Emission, parts, ss, ts):
+    """The (s, t >= 2) connections [J, N, C] as one work queue over (technique, lane)
+    items: only the pairs of live, non-delta vertices run the kernel (the shadow ray, both
+    scattering factors, the four join pdfs and the join weight), each gathering its four
+    vertices and its partial-sum entries. In the pool about one light vertex in six
+    survives its first bounce, so a few percent of the J x N pairs are live: the dense
+    family evaluated all of them. The same arithmetic per item as the dense family."""
+    N = cam.A.shape[1]
+    J = len(ss)
+    dt = cam.A.dtype
+    C = scene.channels
+    water = scene.water
+    log_n = log_n_light_tracing(cfg, N, dt)
+    ok = (rows(lig, ss - 1).alive & ~rows(lig, ss - 1).delta
+          & rows(cam, ts - 1).alive & ~rows(cam, ts - 1).delta)
+    s_of = jnp.asarray(ss, jnp.int32)
+    t_of = jnp.asarray(ts, jnp.int32)
+
+    def item(j, n):
+        s, t = s_of[j], t_of[j]
+        y, yp, z, zp = _at(lig, s - 1, n), _at(lig, s - 2, n), _at(cam, t - 1, n), _at(cam, t - 2, n)
+        # ---- visibility z -> y (both ends offset on their own sides) ----
+        dv = y.p - z.p
+        d = vec.length(dv)
+        w = dv / jnp.maximum(d, 1e-30)
+        oa = subpath.spawn(z.p, z.n, z.medium, w)
+        ob = subpath.spawn(y.p, y.n, y.medium, -w)
+        dd = ob - oa
+        ddl = vec.length(dd)
+        vis = geometry.unoccluded(scene, oa, dd / jnp.maximum(ddl, 1e-30), ddl * (1.0 - 1e-5),
+                                  cfg.march_steps) & (d > 1e-7)
+        wseg = geometry.inside_water(water, oa) if water.enabled else jnp.zeros((), bool)
+        # ---- contribution ----
+        fy = subpath.eval_f(scene, y.kind, y.mat, y.wo, -w, y.n)
+        fz = subpath.eval_f(scene, z.kind, z.mat, z.wo, w, z.n)
+        Tr = (jnp.where(wseg, media.transmittance(water, d), 1.0) if water.enabled
+              else jnp.ones((1,), dt))
+        contrib = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)
+        contrib = contrib * both_dispersed(C, y.disp, z.disp).astype(dt)
+        # ---- the four pdfs the join changes ----
+        A_s = (subpath.bsdf_pdf(scene, y.kind, y.mat, None, y.wo, -w, y.n)
+               * subpath.to_area(1.0, z.medium, z.n, w, d, wseg, water))
+        B_s1 = (subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, w, z.n)
+                * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, water))
+        A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, w, z.wo, zp.p, zp.medium, zp.n,
+                              z.seg_water)
+        b, p4 = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
+                            y.seg_water)
+        B_s2 = jnp.where((s == 2) & e.infinite[n], p4, b)
+        sg = jax.lax.stop_gradient
+        wgt = sg(join_weight(cfg, s, t, parts[0], parts[1], sg(A_s), sg(A_s1), sg(B_s1),
+                             sg(B_s2), e.delta[n], e.infinite[n], sg(log_n),
+                             lanes=((n,), (n,))))
+        return jnp.where(vis, contrib * wgt, 0.0)
+
+    jj = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
+    nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
+    # rounds of about 2N items: a few live pairs per path at most in the shipped scenes
+    return masked_map(item, ok, (jj, nn), 0.0, max(1, J // 2))
+
+
+def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, parts, js,
+                       etas):
+    """Next-event estimation [J, N, C] from z_j (j = js) as one work queue over (vertex,
+    lane) items: only live, non-delta camera vertices sample a light, trace the shadow ray
+    and evaluate the join (in the pool about 40 % of the J x N slots). The same arithmetic
+    per item as the dense family."""
+    N = cam.A.shape[1]
+    J = len(js)
+    dt = cam.A.dtype
+    water = scene.water
+    log_n = log_n_light_tracing(cfg, N, dt)
+    is_delta = jnp.asarray([k == LIGHT_SUN for k in scene.lights.kind])
+    zs = rows(cam, js)
+    j_of = jnp.asarray(js, jnp.int32)
+    sg = jax.lax.stop_gradient
+
+    def item(i, n):
+        j = j_of[i]
+        z, zp = _at(cam, j, n), _at(cam, j - 1, n)
+        u = u_nee[i, n]
+        ls = lights.sample_light(scene, z.p, u[0], u[1], u[2])
+        is_delta_l = is_delta[ls.light]
+        inf = ~jnp.isfinite(ls.dist)
+        dist = jnp.where(inf, 0.0, ls.dist)
+        y = z.p + ls.wi * dist
+        f = subpath.eval_f(scene, z.kind, z.mat, z.wo, ls.wi, z.n)
+        oz = subpath.spawn(z.p, z.n, z.medium, ls.wi)
+        tmax = jnp.where(inf, jnp.inf, vec.length(y - oz) * (1.0 - 1e-4))
+        vis = geometry.unoccluded(scene, oz, ls.wi, tmax, cfg.march_steps)
+        wseg = geometry.inside_water(water, oz) if water.enabled else jnp.zeros((), bool)
+        Tr = (jnp.where(wseg, media.transmittance(water, jnp.where(inf, jnp.inf, ls.dist)), 1.0)
+              if water.enabled else jnp.ones((1,), dt))
+        contrib = z.beta * f * ls.Le * Tr / ls.pdf_w
+        # ---- pdfs at the join ----
+        A0 = lights.light_point_pdf(scene, ls.light, ls.wi)
+        pe = lights.emission_pdf_dir(scene, ls.light, ls.n, -ls.wi)
+        cos_z = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, ls.wi)))
+        g = jnp.where(inf, cos_z, cos_z / jnp.maximum(dist * dist, 1e-30))
+        A_s = pe * g * subpath.dist_pdf(water, wseg, z.medium, ls.dist)  # A(z_j)
+        A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, ls.wi, z.wo, zp.p, zp.medium, zp.n,
+                              z.seg_water)  # z_{j-1} from z_j, coming from y
+        pb = subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, ls.wi, z.n)  # y from z_j
+        cos_y = jnp.abs(vec.dot(ls.n, ls.wi))
+        B0 = jnp.where(inf, pb, pb * cos_y / jnp.maximum(dist * dist, 1e-30)
+                       * subpath.dist_pdf(water, wseg, False, ls.dist))
+        # the fresh light sample as a one-vertex light subpath (one lane)
+        f1 = jnp.zeros((1, 1), bool)
+        lig = Pdfs(A0.reshape(1, 1), B0.reshape(1, 1), jnp.ones((1, 1), dt), f1, f1)
+        Lp = light_partials(cfg, lig, is_delta_l.reshape(1), etas)
+        w = sg(join_weight(cfg, jnp.asarray(1, jnp.int32), j + 1, Lp, parts[1], sg(A_s), sg(A_s1), sg(B0),
+                           jnp.ones((), dt), is_delta_l, inf, sg(log_n), lanes=((0,), (n,))))
+        return jnp.where(ls.valid & vis, contrib * w, 0.0)
+
+    ii = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
+    nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
+    return masked_map(item, zs.alive & ~zs.delta, (ii, nn), 0.0, J)
+
+
+def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission,
+                          cam_o: Vec3, parts, idx, etas):
+    """Light tracing (pixel [J, N], value [J, N, C]) from y_i (i = idx) as one work queue
+    over (vertex, lane) items: only y_0 of a finite light and the live, non-delta light
+    vertices project onto the film (in the pool about one light vertex in six survives
+    its first bounce). The same arithmetic per item as the dense family."""
+    N = lig.A.shape[1]
+    J = len(idx)
+    dt = lig.A.dtype
+    water = scene.water
+    log_n = log_n_light_tracing(cfg, N, dt)
+    N0 = jnp.ones((1, 1), dt)
+    f0 = jnp.zeros((1, 1), bool)
+    Cp = camera_partials(cfg, Pdfs(N0, N0, N0, f0, f0), log_n, etas)  # z_0 alone
+    i_of = jnp.asarray(idx, jnp.int32)
+    sg = jax.lax.stop_gradient
+
+    def item(k, n):
+        i = i_of[k]
+        y, yp = _at(lig, i, n), _at(lig, jnp.maximum(i - 1, 0), n)
+        co = Vec3(*(c[n] for c in cam_o))
+        first = i == 0
+        # ---- visibility camera -> y ----
+        dv = y.p - co
+        d = vec.length(dv)
+        w = dv / jnp.maximum(d, 1e-30)
+        oa = subpath.spawn(co, y.n, jnp.ones((), bool), w)
+        ob = subpath.spawn(y.p, y.n, y.medium, -w)
+        dd = ob - oa
+        ddl = vec.length(dd)
+        vis = geometry.unoccluded(scene, oa, dd / jnp.maximum(ddl, 1e-30), ddl * (1.0 - 1e-5),
+                                  cfg.march_steps) & (d > 1e-7)
+        wseg = geometry.inside_water(water, oa) if water.enabled else jnp.zeros((), bool)
+        pix, imp, inside = camera_importance(scene, w)
+        Tr = (jnp.where(wseg, media.transmittance(water, d), 1.0) if water.enabled
+              else jnp.ones((1,), dt))
+        to_cam = -w
+        # y_0: emitted radiance towards the camera; y_i>0: the scattering factor
+        Le0 = lights.emitted_surface(scene, e.light[n], to_cam, y.n, jnp.ones((), dt))[0]
+        f0 = Le0 * jnp.abs(vec.dot(y.n, to_cam))
+        fi = subpath.eval_f(scene, y.kind, y.mat, y.wo, to_cam, y.n)
+        fterm = jnp.where(first, f0, fi)
+        contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30)) / (N * cfg.chunks)
+        # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
+        B_s1 = imp * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, water)
+        b2, pr = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, to_cam, y.wo, yp.p, yp.medium,
+                             yp.n, y.seg_water)
+        B_s2 = jnp.where((i == 1) & e.infinite[n], pr, b2)
+        one = jnp.ones((), dt)
+        wgt = sg(join_weight(cfg, i + 1, jnp.asarray(1, jnp.int32), parts[0], Cp, one, one,
+                             sg(B_s1), sg(B_s2), e.delta[n], e.infinite[n], sg(log_n),
+                             lanes=((n,), (0,))))
+        return pix, jnp.where(vis & inside, contrib * wgt, 0.0)
+
+    ys = rows(lig, idx)
+    first = (idx == 0)[:, None]
+    ok = jnp.where(first, ~e.infinite[None], ys.alive & ~ys.delta)
+    kk = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
+    nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
+    return masked_map(item, ok, (kk, nn), (0, 0.0), J)

@@ -175,17 +175,15 @@ def both_partials(cfg: RenderConfig, lig: Pdfs, cam: Pdfs, delta_light, log_n_lt
 
 
 def family_join_weights(cfg: RenderConfig, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
-                        infinite_light, log_n_lt, lanes_of_L=True):
+                        infinite_light, log_n_lt):
     """Weights [J, N] of a family of connection techniques by `_mis_partial.join`: s, t [J]
     (static: each technique's entries are static slices of the partials); overrides
-    [J, N]; C: camera partials with fields [..., N]; L: light partials with fields
-    [..., N], or [..., J, N] when `lanes_of_L` is False (one light subpath per technique
-    and lane: next-event estimation's light sample)."""
+    [J, N]; C, L: camera and light partials with fields [..., N]. (Emitter hits; the
+    queued techniques of `_connect` take `_mis_partial.join_weight` per item.)"""
     s = np.asarray(s, np.int32)
     t = np.asarray(t, np.int32)
-    J = s.shape[0]
     sg = jax.lax.stop_gradient
-    Le = _mis_partial.entries(cfg, L, s, t, () if lanes_of_L else (np.arange(J),))
+    Le = _mis_partial.entries(cfg, L, s, t)
     Ce = _mis_partial.entries(cfg, C, t, s)
     w = _mis_partial.join(cfg, s[:, None], t[:, None], Le, Ce, sg(A_s), sg(A_s1), sg(B_s1),
                           sg(B_s2), delta_light, infinite_light, sg(log_n_lt))

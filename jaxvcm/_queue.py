@@ -59,7 +59,7 @@ def masked_map(fn: Callable, mask, args, fill, split: int):
         return jax.lax.cond(r * W < count, work, lambda o, _: o, out, idx), None
 
     out, _ = jax.lax.scan(body, out0, (jnp.arange(rounds, dtype=jnp.int32), order))
-    return jax.tree.map(lambda o: o.reshape(shape), out)
+    return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
 
 
 class Packed:
