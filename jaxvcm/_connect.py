@@ -58,11 +58,9 @@ def _unoccluded(scene: Scene, cfg: RenderConfig, o: Vec3, w: Vec3, tmax, want):
                       want, (o, w, tmax), False, cfg.trace_split)
 
 
-def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb,
-             want):
-    """Mutual visibility of two vertices (offset on the correct sides), the unit direction
-    a -> b, the distance, and whether the segment runs through the water. [J, N]; the
-    visibility is only tested (and can only be True) where `want` holds."""
+def _segment(pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb):
+    """The segment a -> b: unit direction, distance, and its shadow ray (origin offset off
+    a, direction, tmax short of b's offset point)."""
     dv = pb - pa
     d = vec.length(dv)
     w = dv / jnp.maximum(d, 1e-30)
@@ -70,8 +68,16 @@ def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, 
     ob = subpath.spawn(pb, nb, mb, -w)
     dd = ob - oa
     ddl = vec.length(dd)
-    wd = dd / jnp.maximum(ddl, 1e-30)
-    vis = _unoccluded(scene, cfg, oa, wd, ddl * (1.0 - 1e-5), want)
+    return w, d, oa, dd / jnp.maximum(ddl, 1e-30), ddl * (1.0 - 1e-5)
+
+
+def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb,
+             want):
+    """Mutual visibility of two vertices (offset on the correct sides), the unit direction
+    a -> b, the distance, and whether the segment runs through the water. [J, N]; the
+    visibility is only tested (and can only be True) where `want` holds."""
+    w, d, oa, wd, tmax = _segment(pa, na, ma, pb, nb, mb)
+    vis = _unoccluded(scene, cfg, oa, wd, tmax, want)
     if scene.water.enabled:
         # a medium vertex lies inside the water body, so membership of the spawn point
         # decides for every kind of end (the camera included)
@@ -282,6 +288,24 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     return {pr: val[i] for i, pr in enumerate(pairs)}
 
 
+def _visible_one(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3,
+                 mb):
+    """`_visible` for one item (its shadow ray traced here, not queued): visibility, the
+    unit direction a -> b, the distance, whether the segment runs through the water."""
+    w, d, oa, wd, tmax = _segment(pa, na, ma, pb, nb, mb)
+    vis = geometry.unoccluded(scene, oa, wd, tmax, cfg.march_steps)
+    wseg = (geometry.inside_water(scene.water, oa) if scene.water.enabled
+            else jnp.zeros((), bool))
+    return vis & (d > 1e-7), w, d, wseg
+
+
+def _tr_one(scene: Scene, wseg, d):
+    """`_tr` for one item: [C] transmittance of a segment of length d ([1] without water)."""
+    if not scene.water.enabled:
+        return jnp.ones((1,), d.dtype)
+    return jnp.where(wseg, media.transmittance(scene.water, d), 1.0)
+
+
 def _at(ends: PathEnds, i, n) -> PathEnds:
     """Vertex i of lane n of a subpath (traced indices: a gather per field)."""
     return jax.tree.map(lambda a: a[i, n], ends)
@@ -310,21 +334,11 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
         s, t = s_of[j], t_of[j]
         y, yp, z, zp = _at(lig, s - 1, n), _at(lig, s - 2, n), _at(cam, t - 1, n), _at(cam, t - 2, n)
         # ---- visibility z -> y (both ends offset on their own sides) ----
-        dv = y.p - z.p
-        d = vec.length(dv)
-        w = dv / jnp.maximum(d, 1e-30)
-        oa = subpath.spawn(z.p, z.n, z.medium, w)
-        ob = subpath.spawn(y.p, y.n, y.medium, -w)
-        dd = ob - oa
-        ddl = vec.length(dd)
-        vis = geometry.unoccluded(scene, oa, dd / jnp.maximum(ddl, 1e-30), ddl * (1.0 - 1e-5),
-                                  cfg.march_steps) & (d > 1e-7)
-        wseg = geometry.inside_water(water, oa) if water.enabled else jnp.zeros((), bool)
+        vis, w, d, wseg = _visible_one(scene, cfg, z.p, z.n, z.medium, y.p, y.n, y.medium)
         # ---- contribution ----
         fy = subpath.eval_f(scene, y.kind, y.mat, y.wo, -w, y.n)
         fz = subpath.eval_f(scene, z.kind, z.mat, z.wo, w, z.n)
-        Tr = (jnp.where(wseg, media.transmittance(water, d), 1.0) if water.enabled
-              else jnp.ones((1,), dt))
+        Tr = _tr_one(scene, wseg, d)
         contrib = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)
         contrib = contrib * both_dispersed(C, y.disp, z.disp).astype(dt)
         # ---- the four pdfs the join changes ----
@@ -379,8 +393,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         tmax = jnp.where(inf, jnp.inf, vec.length(y - oz) * (1.0 - 1e-4))
         vis = geometry.unoccluded(scene, oz, ls.wi, tmax, cfg.march_steps)
         wseg = geometry.inside_water(water, oz) if water.enabled else jnp.zeros((), bool)
-        Tr = (jnp.where(wseg, media.transmittance(water, jnp.where(inf, jnp.inf, ls.dist)), 1.0)
-              if water.enabled else jnp.ones((1,), dt))
+        Tr = _tr_one(scene, wseg, jnp.where(inf, jnp.inf, ls.dist))
         contrib = z.beta * f * ls.Le * Tr / ls.pdf_w
         # ---- pdfs at the join ----
         A0 = lights.light_point_pdf(scene, ls.light, ls.wi)
@@ -429,20 +442,11 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
         y, yp = _at(lig, i, n), _at(lig, jnp.maximum(i - 1, 0), n)
         co = Vec3(*(c[n] for c in cam_o))
         first = i == 0
-        # ---- visibility camera -> y ----
-        dv = y.p - co
-        d = vec.length(dv)
-        w = dv / jnp.maximum(d, 1e-30)
-        oa = subpath.spawn(co, y.n, jnp.ones((), bool), w)
-        ob = subpath.spawn(y.p, y.n, y.medium, -w)
-        dd = ob - oa
-        ddl = vec.length(dd)
-        vis = geometry.unoccluded(scene, oa, dd / jnp.maximum(ddl, 1e-30), ddl * (1.0 - 1e-5),
-                                  cfg.march_steps) & (d > 1e-7)
-        wseg = geometry.inside_water(water, oa) if water.enabled else jnp.zeros((), bool)
+        # ---- visibility camera -> y (the pinhole as a medium-like point: no offset) ----
+        vis, w, d, wseg = _visible_one(scene, cfg, co, y.n, jnp.ones((), bool), y.p, y.n,
+                                       y.medium)
         pix, imp, inside = camera_importance(scene, w)
-        Tr = (jnp.where(wseg, media.transmittance(water, d), 1.0) if water.enabled
-              else jnp.ones((1,), dt))
+        Tr = _tr_one(scene, wseg, d)
         to_cam = -w
         # y_0: emitted radiance towards the camera; y_i>0: the scattering factor
         Le0 = lights.emitted_surface(scene, e.light[n], to_cam, y.n, jnp.ones((), dt))[0]
