@@ -229,36 +229,16 @@ def meets_slab(w: Water, o: Vec3, d: Vec3, tmin, tmax) -> Array:
     return t0 < t1
 
 
-def slope_bound(w: Water) -> Array:
-    """L = sum |A_i| |k_i| >= |grad h| everywhere: the steepest the surface can be."""
-    return jnp.sum(jnp.abs(w.amp) * jnp.sqrt(w.kx * w.kx + w.kz * w.kz))
-
-
-def steeper_than_surface(w: Water, d: Vec3) -> Array:
-    """|d_y| > L |d_xz| (with a 1 % margin): along such a ray f(t) = o_y + t d_y - h is
-    strictly monotone (f' = d_y - grad h . d_xz keeps the sign of d_y), so it crosses the
-    surface at most once, inside the slab interval, and that interval is a bracket."""
-    return jnp.abs(d.y) > 1.01 * slope_bound(w) * jnp.sqrt(d.x * d.x + d.z * d.z)
-
-
 def water_hits(w: Water, o: Vec3, d: Vec3, want, steps: int, split: int) -> Array:
     """`intersect_water` on (0, inf) for a batch of rays [B], run only where `want` holds
     and the ray meets the surface's box (`meets_slab`); inf elsewhere, which is
-    `intersect_water`'s own answer for a ray that misses the box. Two work queues
-    (`_queue.masked_map`), because under `vmap` every lane would pay for every step:
-      * rays steeper than the surface (`steeper_than_surface`: at most one crossing, and
-        the slab interval brackets it) skip the march: `intersect_water` with one
-        segment, the same refinement from the wider bracket;
-      * the shallow rays march `steps` segments as before.
-    In a 256x256 depth-8 pass of the pool about half the rays never meet the box (46 %
-    of VCM's, 54 % of PT's) and 5 % are shallow and meet it (`docs/design.md`)."""
+    `intersect_water`'s own answer for a ray that misses the box. The rays that meet it go
+    through a work queue (`_queue.masked_map`), because under `vmap` every lane would pay
+    for the march and the refinement: in a 256x256 depth-8 pass of the pool about half the
+    rays never meet the box (46 % of VCM's, 54 % of PT's; `docs/design.md`)."""
     meet = want & jax.vmap(meets_slab, in_axes=(None, 0, 0, None, None))(w, o, d, 0.0, INF)
-    steep = jax.vmap(steeper_than_surface, in_axes=(None, 0))(w, d)
-    t_steep = masked_map(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, 1), meet & steep,
-                         (o, d), INF, split)
-    t_march = masked_map(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, steps),
-                         meet & ~steep, (o, d), INF, 4 * split)
-    return jnp.where(steep, t_steep, t_march)
+    return masked_map(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, steps), meet,
+                      (o, d), INF, split)
 
 
 def inside_water(w: Water, p: Vec3) -> Array:
