@@ -359,8 +359,8 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
 
     jj = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
-    # rounds of about 2N items: a few live pairs per path at most in the shipped scenes
-    return masked_map(item, ok, (jj, nn), 0.0, max(1, J // 2))
+    # rounds of N items: a few live pairs per path at most in the shipped scenes
+    return masked_map(item, ok, (jj, nn), 0.0, J)
 
 
 def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, parts, js,
@@ -417,7 +417,8 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
 
     ii = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
-    return masked_map(item, zs.alive & ~zs.delta, (ii, nn), 0.0, J)
+    # rounds of N / 2 items (about 2.4 live NEE vertices per path in the pool)
+    return masked_map(item, zs.alive & ~zs.delta, (ii, nn), 0.0, 2 * J)
 
 
 def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission,
