@@ -23,7 +23,11 @@ MIN_ROUND = 1024  # narrower rounds cost more in per-round overhead than they sa
 
 def round_width(n: int, split: int) -> int:
     """Items per round of a queue over n items: n / split, but not below MIN_ROUND (small
-    batches: a few wide rounds)."""
+    batches: a few wide rounds); at most 2 MIN_ROUND items run as one round (the dense map:
+    a second round's gathers, scatters and `cond` cost more than the dead items they would
+    skip, and under an outer `vmap`, as in the fits, the `cond` skips nothing)."""
+    if n <= 2 * MIN_ROUND:
+        return n
     return max(-(-n // split), min(n, MIN_ROUND))
 
 
