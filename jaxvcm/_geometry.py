@@ -229,6 +229,34 @@ def meets_slab(w: Water, o: Vec3, d: Vec3, tmin, tmax) -> Array:
     return t0 < t1
 
 
+def crosses_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16) -> Array:
+    """The segment (tmin, tmax) surely crosses the water surface: the end points of its
+    part inside the surface's box lie on opposite sides (f(t) = o_y + t d_y - h changes
+    sign between them, so the continuous f has a root in between). This is exactly
+    `intersect_water`'s any-hit answer on the march's first and last points (the same
+    expressions, the same on-surface rule for the first), so wherever it holds
+    `intersect_water(..., any_hit=True)` is finite: a shadow segment known blocked at the
+    cost of two height evaluations instead of the march (a delta interface blocks every
+    connection through it). False says nothing: the segment may still cross twice."""
+    ylo, yhi = water_slab(w)
+    fp = w.footprint
+    t0, t1 = _slab_interval(Vec3(fp[0], ylo, fp[2]), Vec3(fp[1], yhi, fp[3]), o, d, tmin, tmax)
+    empty = ~(t0 < t1)
+    t1c = jnp.where(empty, t0 + 1.0, t1)
+    tE = t0 + (t1c - t0) * (jnp.asarray(steps, o.x.dtype) / steps)  # the march's last point
+    hE, _, _ = water_height(w, o.x + tE * d.x, o.z + tE * d.z, grad=False)
+    fE = o.y + tE * d.y - hE
+    eps = jnp.finfo(o.x.dtype).eps
+    x0, z0 = o.x + t0 * d.x, o.z + t0 * d.z
+    h0, hx0, hz0 = water_height(w, x0, z0)
+    f0 = o.y + t0 * d.y - h0
+    df0 = d.y - (hx0 * d.x + hz0 * d.z)
+    ferr = 8 * eps * (jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level) + jnp.sum(
+        jnp.abs(w.amp) * (1 + jnp.abs(w.kx * x0) + jnp.abs(w.kz * z0) + jnp.abs(w.phase0))))
+    sgn0 = jnp.where(jnp.abs(f0) <= ferr, df0 >= 0, f0 >= 0)
+    return ~empty & ((fE >= 0) != sgn0)
+
+
 def water_hits(w: Water, o: Vec3, d: Vec3, want, steps: int, split: int) -> Array:
     """`intersect_water` on (0, inf) for a batch of rays [B], run only where `want` holds
     and the ray meets the surface's box (`meets_slab`); inf elsewhere, which is

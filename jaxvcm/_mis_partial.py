@@ -231,6 +231,27 @@ def entries(cfg: RenderConfig, P: Partials, n, other, index=()) -> Entries:
                    P.zero[(xp.clip(n, 0, M),) + index])
 
 
+def start_entries(cfg: RenderConfig, A0, delta_light, leta0=0.0) -> Entries:
+    """The light side's `Entries` of a technique with s = 1 whose light subpath is the lone
+    vertex y_0 (next-event estimation's fresh light sample), in closed form: what
+    `entries(cfg, light(cfg, A0[None], B0[None], 1, False, False, delta_light, etas), 1, t)`
+    reads. y_0 is the adjacent join vertex (ok1; its local pdf a_0 = A0 has no roulette,
+    q1 = 1); the only technique starting at it is the emitter hit (vc1, unless the light
+    is delta); no merging at a subpath's first vertex (vm1 = False); there is no second
+    vertex (ok2 = False: u2 and the table drop out, table = -inf); the technique is
+    impossible iff A0 = 0 (zero). B0 is never read (the join re-evaluates it), nor is the
+    roulette variant (the table is empty). Elementwise in A0, delta_light."""
+    A0 = jnp.asarray(A0)
+    dt = A0.dtype
+    f = jnp.zeros(A0.shape, bool)
+    lp = _log_pos(A0, 0.0)
+    leta = jnp.broadcast_to(jnp.asarray(leta0, dt), A0.shape)
+    return Entries(ok1=~f, lp1=lp, vc1=jnp.asarray(cfg.techniques.emitter_hits) & ~delta_light,
+                   vm1=f, q1=jnp.ones_like(A0), delta1=f, leta1=leta, ok2=f, lp2=lp, vc2=f,
+                   vm2=f, delta2=f, leta2=leta, table=jnp.full(A0.shape, NEG, dt),
+                   zero=~(A0 > 0))
+
+
 def join_weight(cfg: RenderConfig, s, t, L: Partials, C: Partials, A_s, A_s1, B_s1, B_s2,
                 delta_light, infinite_light, log_n_lt, merge=False, lanes=((), ())):
     """MIS weight of technique (s, t) for one lane (`lanes`: each side's trailing-axis

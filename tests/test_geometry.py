@@ -729,3 +729,46 @@ def test_water_hits_queue_matches_dense(pools, family, dt):
         assert_distances(tq, first, water_tol(dt, first), "water_hits/hit vs reference")
     none = np.asarray(G.water_hits(water, ov, dv, jnp.zeros(n, bool), 16, 4))
     assert np.all(np.isinf(none))
+
+
+@pytest.mark.parametrize("dt", DTYPES)
+@pytest.mark.parametrize("family", ["hit", "miss", "surface", "grazing"])
+def test_crosses_water_is_the_marchs_answer(pools, family, dt):
+    """`crosses_water` (a shadow segment known blocked from its end points, so the NEE
+    queue skips it) on segments ending before, near and beyond the rays' crossings:
+    wherever it holds, the march's any-hit answer on the same segment is "blocked" (the
+    skip changes no image), and it holds exactly where the float64 heights at the two
+    end points of the segment's part inside the surface's box have opposite signs (away
+    from rounding: both |f| > 1e-5 m). Not vacuous: most "hit" segments that run past
+    their crossing are caught."""
+    n = N_GRAZING if family == "grazing" else N_RAYS
+    water, ref, o, d, t = _water_setup(pools, family, dt, n)
+    rng = rng_for("crosses water", family)
+    far = rng.uniform(0.05, 4.0, n)
+    tmax = rounded(np.where(np.isfinite(t), t * rng.uniform(0.3, 3.0, n), far), dt)
+    ov, dv = as_vec(o, dt), as_vec(d, dt)
+    tm = jnp.asarray(tmax, dt)
+    zero = jnp.asarray(0.0, dt)
+    cr = np.asarray(jax.vmap(lambda o_, d_, t_: G.crosses_water(water, o_, d_, zero, t_))(
+        ov, dv, tm))
+    ah = np.asarray(jax.vmap(lambda o_, d_, t_: G.intersect_water(water, o_, d_, zero, t_,
+                                                                   any_hit=True))(ov, dv, tm))
+    assert np.all(np.isfinite(ah[cr])), f"{family}: crosses_water but the march sees no hit"
+    ylo, yhi = (float(v) for v in G.water_slab(water))
+    fp = np.asarray(water.footprint, np.float64)
+    lo, hi = np.array([fp[0], ylo, fp[2]]), np.array([fp[1], yhi, fp[3]])  # the padded slab
+    o64, d64 = o.astype(np.float64), d.astype(np.float64)
+    want, clear = np.zeros(n, bool), np.zeros(n, bool)
+    for i in range(n):
+        t0, t1 = O.box_interval(o64[i], d64[i], lo, hi, 0.0, float(tmax[i]))
+        if not t0 < t1:
+            clear[i] = True  # misses the box: never crosses
+            continue
+        p = o64[i] + np.outer([t0, t1], d64[i])
+        f = p[:, 1] - O.water_h(ref.waves, ref.level, p[:, 0], p[:, 2])
+        clear[i] = bool(np.all(np.abs(f) > 1e-5))
+        want[i] = (f[0] >= 0) != (f[1] >= 0)
+    np.testing.assert_array_equal(cr[clear], want[clear], err_msg=f"crosses_water/{family}")
+    if family == "hit":
+        past = np.isfinite(t) & (tmax > 1.01 * t)
+        assert np.mean(cr[past]) > 0.5, "crosses_water misses most clear crossings"

@@ -103,17 +103,28 @@ def _both(cfg, st_, tt, lig, cam, joins, dl, inf, etas, merge):
         Lp = MP.light(cfg, lp.A, lp.B, lp.q, lp.delta, lp.medium, dl, etas)
         Cp = MP.camera(cfg, cp.A, cp.B, cp.q, cp.delta, cp.medium, log_n, etas)
         new = MP.join_weight(cfg, s, t, Lp, Cp, j[0], j[1], j[2], j[3], dl, inf, log_n, merge)
-        return old, new
+        if lp.A.shape[0] != 1:
+            return old, new, new
+        # a lone light vertex (next-event estimation): its entries in closed form, as the
+        # renderer's NEE queue reads them
+        Le = MP.start_entries(cfg, lp.A[0], dl, jnp.where(lp.medium[0], etas[1], etas[0]))
+        start = MP.join(cfg, s, t, Le, MP.entries(cfg, Cp, t, s), j[0], j[1], j[2], j[3], dl,
+                        inf, log_n, merge)
+        return old, new, start
 
     return jax.vmap(one)(st_, tt, LP, CP, joins)
 
 
 def _weights(cfg, dtype, st_, tt, lig, cam, joins, n, dl, inf, etas, merge):
+    """(assembled, partial sums) weights of the batch; for a one-vertex light side the
+    closed-form start entries (`start_entries`) must equal the partial sums exactly."""
     f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     lig = (f(lig[0]), f(lig[1]), f(lig[2]), jnp.asarray(lig[3]), jnp.asarray(lig[4]))
     cam = (f(cam[0]), f(cam[1]), f(cam[2]), jnp.asarray(cam[3]), jnp.asarray(cam[4]))
-    old, new = _both(cfg, jnp.asarray(st_), jnp.asarray(tt), lig, cam, f(joins),
-                     jnp.asarray(dl), jnp.asarray(inf), (f(etas[0]), f(etas[1])), merge)
+    old, new, start = _both(cfg, jnp.asarray(st_), jnp.asarray(tt), lig, cam, f(joins),
+                            jnp.asarray(dl), jnp.asarray(inf), (f(etas[0]), f(etas[1])), merge)
+    np.testing.assert_array_equal(np.asarray(start)[:n], np.asarray(new)[:n],
+                                  err_msg="start_entries differ from the one-vertex partials")
     return np.asarray(old)[:n], np.asarray(new)[:n]
 
 
