@@ -92,9 +92,11 @@ class RenderConfig:
                  while every chunk's light paths splat onto the whole film with 1/N, so light
                  tracing's count stays N: an unbiased pass with the MIS counts of what each
                  technique sees. 1 = one chunk (the same samples as before chunks existed).
-    mis_form:    "explicit" (log-space sums over all techniques, `_mis.py`) or "recursive"
-                 (the tech report's dVCM/dVC/dVM recursion in linear space,
-                 `_mis_recursive.py`: same weights, but limited float32 range).
+    mis_form:    "explicit" (log-space sums over all techniques, `_mis.py`, evaluated from
+                 per-subpath partial sums, `_mis_partial.py`) or "recursive" (the tech
+                 report's dVCM/dVC/dVM recursion in linear space, carried along the
+                 subpaths as they are traced, `_mis_recursive.py`: same weights, but
+                 limited float32 range).
     """
 
     algorithm: str = "pt"

@@ -32,9 +32,8 @@ from . import _subpath as subpath
 from . import _vec as vec
 from ._camera import camera_importance
 from ._config import RenderConfig
-from ._mis_partial import entries, join, join_weight, start_entries
-from ._path import (Pdfs, both_dispersed, camera_partials, family_join_weights, family_weights,
-                    light_partials, log_n_light_tracing, pdfs, reverse_pdf)
+from ._path import (Pdfs, both_dispersed, family_join_weights, family_weights, log_n_light_tracing,
+                    mis_join, no_light_partials, pdfs, pinhole_partials, reverse_pdf)
 from ._queue import masked_map
 from ._scene import LIGHT_SKY, LIGHT_SUN, Scene
 from ._subpath import PathEnds, rows
@@ -112,13 +111,6 @@ def _sky_id(scene: Scene) -> int:
     return 0
 
 
-def _no_light(cfg, N, dt, etas):
-    """Light partials standing in for an empty light subpath (s = 0 reads none of it)."""
-    one = jnp.ones((1, N), dt)
-    f = jnp.zeros((1, N), bool)
-    return light_partials(cfg, Pdfs(one, one, one, f, f), jnp.zeros((N,), bool), etas)
-
-
 # ---------------------------------------------------------------- s = 0
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
                  etas=(0.0, 0.0), parts=None):
@@ -144,7 +136,7 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.
         w = family_weights(cfg, np.zeros(D), js + 1, pdfs(cam), (None, 1), pdfs(cam), (None, 1),
                            A_s, A_s1, one, one, jnp.zeros((), bool), esc, log_n, etas)
     else:  # s = 0: no light vertex (an empty light side)
-        w = family_join_weights(cfg, np.zeros(D), js + 1, _no_light(cfg, N, dt, etas), parts[1],
+        w = family_join_weights(cfg, np.zeros(D), js + 1, no_light_partials(cfg, N, dt, etas), parts[1],
                                 A_s, A_s1, one, one, jnp.zeros((), bool), esc, log_n)
     ok = z.alive & jnp.any(Le > 0, axis=-1)
     contrib = jnp.where(ok[..., None], z.beta * Le * w[..., None], 0.0)
@@ -352,9 +344,9 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
                             y.seg_water)
         B_s2 = jnp.where((s == 2) & e.infinite[n], p4, b)
         sg = jax.lax.stop_gradient
-        wgt = sg(join_weight(cfg, s, t, parts[0], parts[1], sg(A_s), sg(A_s1), sg(B_s1),
-                             sg(B_s2), e.delta[n], e.infinite[n], sg(log_n),
-                             lanes=((n,), (n,))))
+        wgt = sg(mis_join(cfg).join_weight(cfg, s, t, parts[0], parts[1], sg(A_s), sg(A_s1),
+                                           sg(B_s1), sg(B_s2), e.delta[n], e.infinite[n],
+                                           sg(log_n), lanes=((n,), (n,))))
         return jnp.where(vis, contrib * wgt, 0.0)
 
     jj = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
@@ -422,10 +414,11 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         # the fresh light sample as a one-vertex light subpath: its entries in closed form
         # (`start_entries`; building its partials per item cost a third of this stage)
         s1 = jnp.asarray(1, jnp.int32)
-        Le_ = start_entries(cfg, sg(A0), is_delta_l, sg(etas[0]))
-        Ce_ = entries(cfg, parts[1], j + 1, s1, (n,))
-        w = sg(join(cfg, s1, j + 1, Le_, Ce_, sg(A_s), sg(A_s1), sg(B0), jnp.ones((), dt),
-                    is_delta_l, inf, sg(log_n)))
+        mj = mis_join(cfg)
+        Le_ = mj.start_entries(cfg, sg(A0), is_delta_l, sg(etas[0]))
+        Ce_ = mj.entries(cfg, parts[1], j + 1, s1, (n,))
+        w = sg(mj.join(cfg, s1, j + 1, Le_, Ce_, sg(A_s), sg(A_s1), sg(B0), jnp.ones((), dt),
+                       is_delta_l, inf, sg(log_n)))
         return jnp.where(ls.valid & vis, contrib * w, 0.0)
 
     ii = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
@@ -452,9 +445,7 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
     dt = lig.A.dtype
     water = scene.water
     log_n = log_n_light_tracing(cfg, N, dt)
-    N0 = jnp.ones((1, 1), dt)
-    f0 = jnp.zeros((1, 1), bool)
-    Cp = camera_partials(cfg, Pdfs(N0, N0, N0, f0, f0), log_n, etas)  # z_0 alone
+    Cp = pinhole_partials(cfg, log_n, dt, etas)  # z_0 alone
     i_of = jnp.asarray(idx, jnp.int32)
     sg = jax.lax.stop_gradient
 
@@ -481,9 +472,9 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
                              yp.n, y.seg_water)
         B_s2 = jnp.where((i == 1) & e.infinite[n], pr, b2)
         one = jnp.ones((), dt)
-        wgt = sg(join_weight(cfg, i + 1, jnp.asarray(1, jnp.int32), parts[0], Cp, one, one,
-                             sg(B_s1), sg(B_s2), e.delta[n], e.infinite[n], sg(log_n),
-                             lanes=((n,), (0,))))
+        wgt = sg(mis_join(cfg).join_weight(cfg, i + 1, jnp.asarray(1, jnp.int32), parts[0], Cp,
+                                           one, one, sg(B_s1), sg(B_s2), e.delta[n],
+                                           e.infinite[n], sg(log_n), lanes=((n,), (0,))))
         return pix, jnp.where(vis & inside, contrib * wgt, 0.0)
 
     def worth(k, n):  # False: the item contributes 0 whatever the rest computes

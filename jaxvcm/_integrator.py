@@ -32,6 +32,7 @@ from . import _camera as camera
 from . import _connect as connect
 from . import _lights as lights
 from . import _merge as merge
+from . import _mis_recursive as mis_recursive
 from . import _path as path
 from . import _subpath as subpath
 from ._config import RenderConfig
@@ -177,6 +178,9 @@ def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
     c0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(
         scene, o, d, jax.lax.stop_gradient(imp))
+    if cfg.mis_form == "recursive":  # z_0's carry: nothing starts at the pinhole
+        c0 = c0._replace(mis=mis_recursive.start_carry(cfg, jnp.ones((N,), dt), False,
+                                                       st.mis_etas[0], dt))
     uc = jax.random.uniform(st.keys[1], (D, N, subpath.N_UNIFORMS), dt)
     return dataclasses.replace(st, origins=o, cam_start=c0, cam_u=uc)
 
@@ -187,6 +191,10 @@ def light_emission(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
         scene, jax.random.uniform(st.keys[3], (N, 5), dt))
     l0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
+    if cfg.mis_form == "recursive":  # y_0's carry: the emitter hit starts there (tr. 31-33)
+        l0 = l0._replace(mis=mis_recursive.start_carry(
+            cfg, jax.lax.stop_gradient(e.pdf_pos), cfg.techniques.emitter_hits & ~e.delta,
+            st.mis_etas[0], dt))
     ul = jax.random.uniform(st.keys[4], (_light_steps(cfg), N, subpath.N_UNIFORMS), dt)
     return dataclasses.replace(st, emission=e, light_start=l0, light_u=ul)
 
@@ -194,21 +202,29 @@ def light_emission(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 # ---- subpaths: one trace (camera and light lanes together when both run), then the
 #      records with their start vertices
 def subpaths(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    _, N, D, _ = _dims(scene, cfg)
+    _, N, D, dt = _dims(scene, cfg)
     tech = cfg.techniques
     n_steps = _light_steps(cfg)
     cverts = lverts = cends = lends = None
+    ctx = cm0 = lm0 = None
+    if cfg.mis_form == "recursive":
+        etas = st.mis_etas
+        ctx = mis_recursive.Context(jnp.asarray(etas[0], dt), jnp.asarray(etas[1], dt),
+                                    path.log_n_light_tracing(cfg, N, dt))
+        cm0 = None if st.cam_start is None else st.cam_start.mis
+        lm0 = None if st.light_start is None else st.light_start.mis
     if tech.camera_paths and tech.light_paths:
         cverts, (lverts, rev0) = subpath.trace_both(scene, cfg, st.cam_start, st.cam_u, D,
-                                                    st.light_start, st.light_u, n_steps)
+                                                    st.light_start, st.light_u, n_steps, ctx)
     elif tech.camera_paths:
-        cverts, _ = subpath.trace(scene, cfg, True, st.cam_start, st.cam_u, D)
+        cverts, _ = subpath.trace(scene, cfg, True, st.cam_start, st.cam_u, D, mis_ctx=ctx)
     else:
-        lverts, rev0 = subpath.trace(scene, cfg, False, st.light_start, st.light_u, n_steps)
+        lverts, rev0 = subpath.trace(scene, cfg, False, st.light_start, st.light_u, n_steps,
+                                     mis_ctx=ctx)
     if tech.camera_paths:
-        cends = subpath.camera_ends(scene, st.origins, cverts, N)
+        cends = subpath.camera_ends(scene, st.origins, cverts, N, cm0)
     if tech.light_paths:
-        lends = subpath.light_ends(scene, st.emission, rev0, lverts, N)
+        lends = subpath.light_ends(scene, st.emission, rev0, lverts, N, lm0)
     return dataclasses.replace(st, cverts=cverts, lverts=lverts, cends=cends, lends=lends,
                                cam_start=None, cam_u=None, light_start=None, light_u=None)
 
@@ -219,7 +235,10 @@ def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     tech = cfg.techniques
     lparts = cparts = None
     log_n = path.log_n_light_tracing(cfg, N, dt)
-    if tech.camera_paths and tech.light_paths:
+    if cfg.mis_form == "recursive":  # the records carried along the subpaths
+        cparts = None if st.cends is None else path.carried(cfg, st.cends, st.mis_etas)
+        lparts = None if st.lends is None else path.carried(cfg, st.lends, st.mis_etas)
+    elif tech.camera_paths and tech.light_paths:
         lparts, cparts = path.both_partials(cfg, path.pdfs(st.lends), path.pdfs(st.cends),
                                             st.emission.delta, log_n, st.mis_etas)
     elif tech.camera_paths:

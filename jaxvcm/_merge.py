@@ -32,8 +32,7 @@ from . import _hashgrid as hashgrid
 from . import _subpath as subpath
 from . import _vec as vec
 from ._config import RenderConfig
-from . import _mis_partial
-from ._path import both_dispersed, log_n_light_tracing, pdfs, reverse_pdf, weight
+from ._path import both_dispersed, log_n_light_tracing, mis_join, pdfs, reverse_pdf, weight
 from ._scene import Scene, bounding_sphere
 from ._subpath import PathEnds
 from ._vec import Vec3
@@ -172,8 +171,8 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     (i >= 1) within `radius`, like with like, weighted by the explicit-sum MIS over all
     connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
-    `parts`: the subpaths' (light, camera) MIS partials (`_mis_partial`): each candidate
-    then gathers O(1) entries; None: each assembles its full path (`_path.weight`).
+    `parts`: the subpaths' (light, camera) MIS partials (`_mis_partial`) or carried records
+    (`_mis_recursive`, `_path.mis_join`): each candidate then gathers O(1) entries; None: each assembles its full path (`_path.weight`).
     Returns ([N, C] per camera lane, overflow, longest candidate list)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -232,7 +231,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
                 e.infinite[ll], log_n, etas[0], etas[1], True)
         else:
             sg = jax.lax.stop_gradient
-            w = _mis_partial.join_weight(cfg, ip, jq + 1, parts[0], parts[1], sg(y.A),
+            w = mis_join(cfg).join_weight(cfg, ip, jq + 1, parts[0], parts[1], sg(y.A),
                                          sg(A_s1), sg(B_s1), sg(B_s2), e.delta[ll],
                                          e.infinite[ll], sg(log_n), merge=True,
                                          lanes=((ll,), (lc,)))

@@ -1,7 +1,11 @@
 """MIS weights by the recursive dVCM / dVC / dVM form of Georgiev's tech report
-"Implementing Vertex Connection and Merging" (2012): a second, independent implementation
-of `_mis.mis_weight` (same signature, same semantics), used as an oracle in the tests and
-selectable in the renderer with `RenderConfig(mis_form="recursive")`.
+"Implementing Vertex Connection and Merging" (2012), in two shapes:
+- `mis_weight_recursive`: a second, independent implementation of `_mis.mis_weight` (same
+  signature, same semantics) over an assembled full path, the oracle of the property
+  tests (and ppm's weights with `mis_form="recursive"`);
+- the renderer's recursive form (`RenderConfig(mis_form="recursive")`, end of this
+  module): dVCM / dVC / dVM carried along each subpath as it is traced (`carry_step`,
+  SmallVCM's way) and joined per technique (`join`), O(1) per technique.
 
 Equation numbers "(tr. NN)" are those of the tech report as cited by SmallVCM's
 `vertexcm.hxx`: (20) eta_VCM = pi r^2 N; (31)-(33) subpath start; (34)-(36) non-delta
@@ -116,8 +120,11 @@ shows a concrete overflowing path.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._config import TECHNIQUES
@@ -255,3 +262,289 @@ def mis_weight_recursive(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool
         w = jnp.where(merge, w_vm, w)
         ok = jnp.where(merge, ok_vm, ok)
     return jnp.where(ok, w, 0.0)
+
+
+# ==================================================================================
+# The recursion carried along the subpaths as they are traced (SmallVCM's way)
+# ==================================================================================
+# `mis_weight_recursive` above runs the recursion over an assembled full path per
+# technique. The renderer's recursive form instead carries dVCM / dVC / dVM with each
+# subpath while it is traced (`_subpath.step` calls `carry_step` with the pdfs it has just
+# computed, before they are stored), records them per vertex, and evaluates each
+# technique's weight at its join from the two records next to it (tr. 37-47): O(1) per
+# vertex while tracing, O(1) per technique. It reads none of the stored pdf records, so
+# an image rendered with it checks the records that the explicit sums (`_mis_partial`)
+# are built from (and the queue's shifting of the reverse pdfs), not only the algebra.
+#
+# Russian roulette by index. A vertex's survival probability counts from whichever end
+# generates the next vertex, so the reverse pdf b_m of a light vertex carries q_{m+1} iff
+# the path has rr_depth or more segments between x_{m+1} and the camera: it depends on
+# the camera side's length t, known only at the join. Only the last few stored factors can
+# lack it: with z = clip(rr_depth - t - 1, 0, Z) (connections; merging: rr_depth - t), the
+# z most recent reverse factors in dVC_{s-1} / dVM_{s-1} are without roulette and all the
+# earlier ones with it. The recursion therefore carries one (dVC, dVM) per z = 0..Z, and a
+# step shifts them: state_z(i) = update(state_{z-1}(i-1), b_{i-2} without q) for z >= 1,
+# state_0(i) = update(state_0(i-1), b_{i-2} q_{i-1}). The camera side mirrors it with the
+# light side's length s. The own-direction pdf (a_i on the light side) carries its own
+# roulette, whose index is known while tracing.
+
+class Carry(NamedTuple):
+    """What a subpath carries from the vertex its ray left (per lane).
+
+    rec:    [2 + 2V] that vertex's record: dVCM, 1 / Mis(local pdf), dVC[V], dVM[V];
+    zero:   a zero local pdf at or before that vertex (the techniques through it are
+            impossible);
+    F:      merging at that vertex is enabled (0 / 1);
+    leta:   log(kernel N) at that vertex;
+    rev:    the reverse pdf of the vertex before it (computed when the ray left), RR-free;
+    q_rev:  that reverse pdf's roulette factor: the local survival q of the vertex left;
+    q_cont: the survival probability the subpath applied when it left the vertex.
+    """
+
+    rec: Array
+    zero: Array
+    F: Array
+    leta: Array
+    rev: Array
+    q_rev: Array
+    q_cont: Array
+
+
+class Record(NamedTuple):
+    """The carried quantities recorded at a vertex: rec [..., 2 + 2V] and zero."""
+
+    rec: Array
+    zero: Array
+
+
+class Context(NamedTuple):
+    """Per pass, the same for every lane: log(kernel N) on surfaces and in the medium, and
+    log of light tracing's multiplicity (`_path.log_n_light_tracing`)."""
+
+    leta_surf: Array
+    leta_med: Array
+    log_n_lt: Array
+
+
+def n_variants(cfg) -> int:
+    """V = Z + 1 roulette variants, Z = min(rr_depth - 1, max_depth + 1): no subpath holds
+    more reverse factors than a full path has vertices."""
+    return min(cfg.rr_depth - 1, cfg.max_depth + 1) + 1
+
+
+def _beta(cfg) -> float:
+    return 2.0 if cfg.mis == "power" else 1.0
+
+
+def _mis(x, beta: float):
+    """Mis(x) = x^beta (tr. "Mis"): x x for the power heuristic."""
+    return x * x if beta == 2.0 else x
+
+
+def _rec(dvcm, inv, dvc, dvm):
+    return jnp.concatenate([dvcm[..., None], inv[..., None], dvc, dvm], axis=-1)
+
+
+def start_carry(cfg, A0, E0, leta0, dtype) -> Carry:
+    """The carry at a subpath's start vertex (x_0 of a light subpath: A0 its area pdf, E0 =
+    the emitter hit is enabled, tr. 31-33; the pinhole z_0: E0 = False, A0 = 1, since the
+    pinhole is never hit). Elementwise over lanes."""
+    V = n_variants(cfg)
+    A0 = jnp.asarray(A0, dtype)
+    inv = _recip(_mis(A0, _beta(cfg)))
+    zeros = jnp.zeros(A0.shape + (V,), dtype)
+    one = jnp.ones(A0.shape, dtype)
+    dvcm = _times(jnp.asarray(E0, dtype) * one, inv)
+    return Carry(_rec(dvcm, inv, zeros, zeros), ~(A0 > 0), jnp.zeros(A0.shape, dtype),
+                 jnp.broadcast_to(jnp.asarray(leta0, dtype), A0.shape), one, one, one)
+
+
+def carry_step(cfg, c: Carry, ctx: Context, camera, index, pdf_fwd, rev, q_loc, q_next,
+               delta, medium, prev_delta) -> tuple[Carry, Record]:
+    """One vertex of a subpath (one lane), from what `_subpath.step` has just computed:
+    pdf_fwd its own-direction pdf (area / volume, RR-free, delta-remapped), rev the reverse
+    pdf of the vertex the ray left, q_loc its local survival, q_next the survival the
+    subpath applies when it continues, delta / medium its flags, prev_delta the left
+    vertex's; `camera`: a camera subpath (bool, possibly traced); index + 1 the vertex's
+    position along the subpath. The update of (tr. 34-36) followed by the completion on
+    arrival, in area measure (module doc: dVC_i = (f H + dVCM + dVC b) / a_i)."""
+    tech = cfg.techniques
+    beta = _beta(cfg)
+    V = n_variants(cfg)
+    dt = pdf_fwd.dtype
+    i = index + 1
+    dvcm_p, inv_p, dvc_p, dvm_p = c.rec[0], c.rec[1], c.rec[2:2 + V], c.rec[2 + V:]
+    # ---- the new vertex's local pdf (own roulette, known while tracing) ----
+    a = pdf_fwd * c.q_cont
+    inv = _recip(_mis(a, beta))
+    # ---- the left vertex's predecessor's reverse pdf: with / without its roulette ----
+    b_q = _mis(c.rev * c.q_rev, beta)
+    b_1 = _mis(c.rev, beta)
+    Bf = jnp.concatenate([b_q[None], jnp.broadcast_to(b_1, (V - 1,))])
+    src_vc = jnp.concatenate([dvc_p[:1], dvc_p[:V - 1]])  # variant z reads z - 1 (z >= 1)
+    src_vm = jnp.concatenate([dvm_p[:1], dvm_p[:V - 1]])
+    H_p = jnp.exp(beta * c.leta)
+    leta = jnp.where(medium, ctx.leta_med, ctx.leta_surf).astype(dt)
+    H = jnp.exp(beta * leta)
+    # ---- the techniques that start at the new vertex ----
+    # light x_i: connection i (x_{i-1} - x_i; i = 1 next-event estimation); camera z_c:
+    # connection k - c + 1 (z_c - z_{c-1}; c = 1 light tracing, multiplicity N)
+    first = i == 1
+    on = jnp.where(first, jnp.where(camera, tech.light_tracing, tech.nee), tech.connections)
+    E = (on & ~delta & (first | ~prev_delta)).astype(dt)
+    E = E * jnp.where(camera & first, jnp.exp(beta * ctx.log_n_lt), 1.0).astype(dt)
+    F = (jnp.asarray(tech.merging == "all") & ~delta).astype(dt)
+    # ---- tr. 34-36 and the completion on arrival ----
+    dvc = _times(_times(H_p, c.F) + dvcm_p + _times(src_vc, Bf), inv)
+    dvm = _times((H_p / H) * (c.F + dvcm_p / H_p + _times(src_vm, Bf)), inv)
+    dvcm = _times(E, inv)
+    zero = c.zero | ~(a > 0)
+    rec = _rec(dvcm, inv, dvc, dvm)
+    return Carry(rec, zero, F, leta, rev, q_loc, q_next), Record(rec, zero)
+
+
+class Carried(NamedTuple):
+    """One subpath's carried records with what a join reads besides them, per lane:
+    rec [2 + 2V, M, *lanes] (the record's fields first), zero, F, leta, q, delta [M, *lanes]."""
+
+    rec: Array
+    zero: Array
+    F: Array
+    leta: Array
+    q: Array
+    delta: Array
+
+
+def carried(cfg, rec, zero, q, delta, medium, etas=(0.0, 0.0)) -> Carried:
+    """`Carried` from a subpath's records with its start vertex (`_subpath.PathEnds.mis`:
+    rec [M, *lanes, 2 + 2V], zero [M, *lanes]) and its flags [M, *lanes]."""
+    M = q.shape[0]
+    dt = rec.dtype
+    i = np.arange(M).reshape((M,) + (1,) * (q.ndim - 1))
+    F = (jnp.asarray(cfg.techniques.merging == "all") & ~delta & (i >= 1)).astype(dt)
+    leta = jnp.where(medium, etas[1], etas[0]).astype(dt)
+    return Carried(jnp.moveaxis(rec, -1, 0), zero, F, leta, q, delta)
+
+
+def lone_start(cfg, lanes, dtype) -> Carried:
+    """`Carried` of a subpath that is only its start vertex z_0, the pinhole (light tracing's
+    camera side): [.., 1, *lanes]."""
+    c = start_carry(cfg, jnp.ones((1,) + lanes, dtype), False, 0.0, dtype)
+    f = jnp.zeros((1,) + lanes, bool)
+    return Carried(jnp.moveaxis(c.rec, -1, 0), c.zero, c.F, c.leta, jnp.ones((1,) + lanes, dtype), f)
+
+
+class Entries(NamedTuple):
+    """What a technique reads from one side: the vertex next to the join (its record, with
+    the roulette variant chosen, and flags) and the delta flag of the one before it."""
+
+    ok: Array
+    dvcm: Array
+    inv: Array
+    dvc: Array
+    dvm: Array
+    F: Array
+    leta: Array
+    q: Array
+    delta: Array
+    delta2: Array
+    zero: Array
+
+
+def entries(cfg, P: Carried, n, other, index=(), merge=False) -> Entries:
+    """The entries of a side with n vertices in the technique (light: s, camera: t) whose
+    other side has `other` vertices (indices static numpy, traced, or mixed; `index`: the
+    fields' trailing-axis indices, e.g. the lane). The roulette variant: z = rr_depth -
+    other - 1 reverse factors without roulette (`merge`: rr_depth - other, the photon one
+    vertex further along its subpath than a connection's end)."""
+    M = P.q.shape[0]
+    V = n_variants(cfg)
+    xp = np if isinstance(n, (int, np.ndarray)) and isinstance(other, (int, np.ndarray)) else jnp
+    i1, i2 = n - 1, n - 2
+    ic1, ic2 = xp.clip(i1, 0, M - 1), xp.clip(i2, 0, M - 1)
+    ok = (i1 >= 0) & (i1 < M)
+    z = xp.clip(cfg.rr_depth - other - (0 if merge else 1), 0, V - 1)
+    lead = P.q[(ic1,) + index].ndim - np.ndim(ok)
+    okb = ok.reshape(np.shape(ok) + (1,) * lead)
+    g = lambda a, ic: a[(ic,) + index]  # noqa: E731
+    r = lambda col: P.rec[(col, ic1) + index]  # noqa: E731
+    d2 = g(P.delta, ic2) & ((i2 >= 0) & (i2 < M)).reshape(np.shape(ok) + (1,) * lead)
+    return Entries(okb, r(0), r(1), r(2 + z), r(2 + V + z), g(P.F, ic1), g(P.leta, ic1),
+                   g(P.q, ic1), g(P.delta, ic1) & okb, d2, g(P.zero, ic1) & okb)
+
+
+def start_entries(cfg, A0, delta_light, leta0=0.0) -> Entries:
+    """The light side of a technique whose light subpath is the lone fresh light sample y_0
+    (next-event estimation): dVCM_0 = E_0 / Mis(a_0), no other technique starts before it
+    (tr. 31-33, 44). Elementwise in A0, delta_light."""
+    A0 = jnp.asarray(A0)
+    dt = A0.dtype
+    E0 = jnp.asarray(cfg.techniques.emitter_hits) & ~jnp.asarray(delta_light)
+    c = start_carry(cfg, A0, E0, leta0, dt)
+    f = jnp.zeros(A0.shape, bool)
+    zero = jnp.zeros(A0.shape, dt)
+    return Entries(~f, c.rec[..., 0], c.rec[..., 1], zero, zero, zero, c.leta, jnp.ones_like(A0),
+                   f, f, c.zero)
+
+
+def join_weight(cfg, s, t, L: Carried, C: Carried, A_s, A_s1, B_s1, B_s2, delta_light,
+                infinite_light, log_n_lt, merge=False, lanes=((), ())):
+    """MIS weight of technique (s, t) (or merging at x_s = z_{t-1}: the photon is y_s) from
+    the two subpaths' carried records and the four pdfs the join re-evaluates; the same
+    signature as `_mis_partial.join_weight` (A_s, the photon's pdf for a merge, is then
+    already in the photon's record)."""
+    if merge:
+        Le = entries(cfg, L, s + 1, t, lanes[0], merge=True)
+    else:
+        Le = entries(cfg, L, s, t, lanes[0])
+    return join(cfg, s, t, Le, entries(cfg, C, t, s, lanes[1]), A_s, A_s1, B_s1, B_s2,
+                delta_light, infinite_light, log_n_lt, merge)
+
+
+def join(cfg, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s2, delta_light,
+         infinite_light, log_n_lt, merge=False):
+    """`join_weight` from the entries of both sides (Le: y_{s-1}, or the photon y_s for a
+    merge; Ce: z_{t-1}); elementwise, any batch shape."""
+    tech = cfg.techniques
+    beta = _beta(cfg)
+    R = cfg.rr_depth
+    k = s + t - 1
+    dt = Ce.dvcm.dtype
+    rr = lambda index, q: jnp.where(index >= R, q, 1.0)  # noqa: E731
+    q_y = jnp.where(Le.ok, Le.q, 1.0)  # y_{s-1} (connections)
+    q_z = Ce.q  # z_{t-1}
+    # ---- the re-evaluated pdfs, with the roulette of the direction that generates them ----
+    Bs1 = _mis(B_s1 * rr(t - 1, q_z), beta)  # y_{s-1} from z_{t-1}
+    Bs2 = _mis(B_s2 * rr(t, q_y), beta)  # y_{s-2} through y_{s-1}
+    As = _mis(A_s * jnp.where(s >= 1, rr(s - 1, q_y), 1.0), beta)  # z_{t-1} from y_{s-1}
+    As1 = _mis(jnp.where(t >= 3, A_s1, 1.0) * rr(s, q_z), beta)  # z_{t-2} through z_{t-1}
+    H_c = jnp.exp(beta * Ce.leta)
+    nu_lt = jnp.exp(beta * jnp.asarray(log_n_lt, dt))
+    # connection s + 1 (x_s - x_{s+1}) is in z_{t-1}'s dVCM, except for s = 0, where x_s is
+    # the light vertex: next-event estimation, or light tracing if k = 1 (multiplicity N)
+    E_s1 = jnp.where(k == 1, tech.light_tracing & ~infinite_light, tech.nee & ~Ce.delta2)
+    dvcm_c = jnp.where(s == 0, _times(E_s1.astype(dt) * jnp.where(t == 2, nu_lt, 1.0), Ce.inv),
+                       Ce.dvcm)
+    F_c = jnp.where(s >= 1, Ce.F, 0.0)  # no merging at the light vertex x_0
+    positive = ~Le.zero & ~Ce.zero
+    if merge:
+        # ---- merging at x_s (tr. 38/39) ----
+        H_p = jnp.exp(beta * Le.leta)
+        wl = Le.dvcm / H_p + _times(Le.dvm, Bs1)
+        wc = dvcm_c / H_c + _times(Ce.dvm, As1)
+        w = 1.0 / (wl + 1.0 + wc)  # (tr. 37)
+        ok = (F_c > 0) & ~Ce.delta & positive & (t >= 2) & Le.ok
+        return jnp.where(ok, w, jnp.zeros((), dt))
+    # ---- connection s (tr. 40/41; 42-47 its special cases s = 0, 1, t = 1) ----
+    H_l = jnp.exp(beta * Le.leta)
+    wl = _times(_times(H_l, Le.F) + Le.dvcm + _times(Le.dvc, Bs2), Bs1)
+    wl = jnp.where((s >= 1) & Le.ok, wl, 0.0)  # tr. 42: no light vertex
+    wc = _times(_times(H_c, F_c) + dvcm_c + _times(Ce.dvc, As1), As)  # tr. 47: 0 at z_0
+    nu = jnp.where(t == 1, nu_lt, 1.0)  # light tracing's own multiplicity (tr. 46)
+    w = 1.0 / (wl / nu + 1.0 + wc / nu)  # (tr. 37)
+    conn = jnp.where(s == 0, tech.emitter_hits & ~delta_light,
+                     jnp.where(t == 1, tech.light_tracing & ((s == 1) | ~Le.delta)
+                               & ~((k == 1) & infinite_light),
+                               jnp.where(s == 1, tech.nee & ~Ce.delta,
+                                         tech.connections & ~Le.delta & ~Ce.delta)))
+    return jnp.where(conn & positive, w, jnp.zeros((), dt))

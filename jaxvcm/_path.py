@@ -7,9 +7,11 @@ the stored subpaths, except the four the join changes (pbrt's `MISWeight`):
     A(z_{t-1}), A(z_{t-2})  light-side pdfs of the two camera vertices nearest the join,
     B(y_{s-1}), B(y_{s-2})  camera-side pdfs of the two light vertices nearest the join.
 `weight` hands the assembled arrays to the explicit sums (`_mis.py`) or to the recursive
-form (`_mis_recursive.py`). The renderer's explicit form does not assemble: each subpath's
-partial sums are built once (`light_partials`, `camera_partials`) and each technique adds
-its join (`_mis_partial.py`, `family_join_weights`); `joins_partials(cfg)` says which.
+form (`_mis_recursive.py`). The renderer does not assemble (except for ppm): the explicit
+form builds each subpath's partial sums once (`light_partials`, `camera_partials`), the
+recursive form carries dVCM / dVC / dVM along each subpath as it is traced (`carried`),
+and each technique adds its join (`mis_join(cfg)`, `family_join_weights`);
+`joins_partials(cfg)` says which.
 """
 
 from __future__ import annotations
@@ -133,9 +135,43 @@ def family_weights(cfg, s, t, lig: Pdfs, lig_axis, cam: Pdfs, cam_axis, A_s, A_s
 
 # ---------------------------------------------------------------- O(1) per technique
 def joins_partials(cfg: RenderConfig) -> bool:
-    """The renderer weights by per-subpath partial sums (`_mis_partial.py`): the explicit
-    form, except for ppm (merging at the first non-delta camera vertex only)."""
-    return cfg.mis_form == "explicit" and cfg.techniques.merging != "first"
+    """The renderer weights each technique at its join from per-subpath quantities: the
+    explicit form's partial sums (`_mis_partial.py`) or the recursive form's records
+    carried along the subpaths (`_mis_recursive.carry_step`), except for ppm (merging at
+    the first non-delta camera vertex only), which assembles its paths."""
+    return cfg.techniques.merging != "first"
+
+
+def mis_join(cfg: RenderConfig):
+    """The module whose `entries`, `start_entries`, `join` and `join_weight` weight the
+    techniques at their joins: `_mis_partial` (explicit) or `_mis_recursive` (recursive);
+    the same signatures."""
+    return _mis_recursive if cfg.mis_form == "recursive" else _mis_partial
+
+
+def carried(cfg: RenderConfig, ends: PathEnds, etas=(0.0, 0.0)):
+    """`_mis_recursive.Carried` of a subpath traced with the recursive form's carry."""
+    sg = jax.lax.stop_gradient
+    return _mis_recursive.carried(cfg, sg(ends.mis.rec), ends.mis.zero, sg(ends.q), ends.delta,
+                                  ends.medium, sg(etas))
+
+
+def no_light_partials(cfg: RenderConfig, N: int, dt, etas=(0.0, 0.0)):
+    """Light partials standing in for an empty light subpath (s = 0 reads none of it)."""
+    if cfg.mis_form == "recursive":
+        return _mis_recursive.lone_start(cfg, (N,), dt)
+    one = jnp.ones((1, N), dt)
+    f = jnp.zeros((1, N), bool)
+    return light_partials(cfg, Pdfs(one, one, one, f, f), jnp.zeros((N,), bool), etas)
+
+
+def pinhole_partials(cfg: RenderConfig, log_n_lt, dt, etas=(0.0, 0.0)):
+    """Camera partials of the pinhole z_0 alone (light tracing's camera side), [1, 1] lanes."""
+    if cfg.mis_form == "recursive":
+        return _mis_recursive.lone_start(cfg, (1,), dt)
+    N0 = jnp.ones((1, 1), dt)
+    f0 = jnp.zeros((1, 1), bool)
+    return camera_partials(cfg, Pdfs(N0, N0, N0, f0, f0), log_n_lt, etas)
 
 
 def light_partials(cfg: RenderConfig, lig: Pdfs, delta_light, etas=(0.0, 0.0)):
@@ -183,8 +219,9 @@ def family_join_weights(cfg: RenderConfig, s, t, L, C, A_s, A_s1, B_s1, B_s2, de
     s = np.asarray(s, np.int32)
     t = np.asarray(t, np.int32)
     sg = jax.lax.stop_gradient
-    Le = _mis_partial.entries(cfg, L, s, t)
-    Ce = _mis_partial.entries(cfg, C, t, s)
-    w = _mis_partial.join(cfg, s[:, None], t[:, None], Le, Ce, sg(A_s), sg(A_s1), sg(B_s1),
-                          sg(B_s2), delta_light, infinite_light, sg(log_n_lt))
+    mj = mis_join(cfg)
+    Le = mj.entries(cfg, L, s, t)
+    Ce = mj.entries(cfg, C, t, s)
+    w = mj.join(cfg, s[:, None], t[:, None], Le, Ce, sg(A_s), sg(A_s1), sg(B_s1),
+                sg(B_s2), delta_light, infinite_light, sg(log_n_lt))
     return sg(w)

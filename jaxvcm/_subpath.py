@@ -18,7 +18,7 @@ end; `_media.py`) are part of the area/volume pdfs of segments that run through 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +29,7 @@ from . import _geometry as geometry
 from . import _lights as lights
 from . import _materials as materials
 from . import _media as media
+from . import _mis_recursive as mis_recursive
 from . import _vec as vec
 from ._config import RenderConfig
 from ._queue import Packed, round_width
@@ -59,6 +60,7 @@ class Vertex(NamedTuple):
     escaped: Array  # vertex at infinity (the ray left the scene)
     alive: Array  # the vertex exists
     dispersed: Array  # beta went through a dispersive refraction: hero only, times C
+    mis: Any = None  # `_mis_recursive.Record` (mis_form "recursive"), else None
 
 
 class WalkState(NamedTuple):
@@ -75,6 +77,7 @@ class WalkState(NamedTuple):
     prev_inf: Array  # p_prev is a light vertex at infinity (sun / sky disk)
     prev_conv: Array  # p_prev's reverse pdf needs no area conversion (camera, infinite light)
     dispersed: Array  # beta went through a dispersive refraction (hero channel only, x C)
+    mis: Any = None  # `_mis_recursive.Carry` (mis_form "recursive"), else None
 
 
 def rr(index, q, cfg: RenderConfig):
@@ -142,10 +145,12 @@ def spawn(p: Vec3, n: Vec3, medium, w: Vec3) -> Vec3:
 
 
 def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u,
-         t_water=None) -> tuple[WalkState, Vertex]:
+         t_water=None, mis_ctx=None) -> tuple[WalkState, Vertex]:
     """Extend one subpath by one segment; `index` = segments before the new vertex minus 1.
     `t_water`: the water's distance along the ray, when the caller computed it for the
-    batch (`geometry.water_hits`); None: computed here."""
+    batch (`geometry.water_hits`); None: computed here. With a carry in `s.mis`
+    (mis_form "recursive") the step also carries the MIS recursion one vertex on
+    (`_mis_recursive.carry_step`, `mis_ctx` its per-pass `Context`)."""
     water = scene.water
     dt = s.o.x.dtype
     C = scene.channels
@@ -224,20 +229,29 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     alive = v_alive & ~esc & jnp.any(beta_next > 0) & (u[5] < q)
     beta_next = beta_next / q
 
+    # ---- the recursive MIS quantities, carried on from the pdfs just computed ----
+    mis_carry = mis_rec = None
+    if s.mis is not None:
+        sg = jax.lax.stop_gradient
+        mis_carry, mis_rec = mis_recursive.carry_step(
+            cfg, s.mis, mis_ctx, radiance, index, sg(pdf_fwd), sg(rev), sg(q_loc), sg(q),
+            delta, scatter, s.prev_delta)
+
     vertex = Vertex(p_rec, n, wo, beta, jax.lax.stop_gradient(pdf_fwd),
                     jax.lax.stop_gradient(rev), kind, mat, light_id, Le, q_loc, s.in_water,
-                    delta, esc & v_alive, v_alive, s.dispersed)
+                    delta, esc & v_alive, v_alive, s.dispersed, mis_rec)
 
     # ---- spawn ----
     o = spawn(p, n, scatter, wi)
     in_water = (scatter | geometry.inside_water(water, o)) if water.enabled else s.in_water
     state = WalkState(o, p, n, wi, beta_next, alive, in_water, jax.lax.stop_gradient(pdf_w),
-                      delta, scatter, jnp.zeros((), bool), jnp.zeros((), bool), dispersed)
+                      delta, scatter, jnp.zeros((), bool), jnp.zeros((), bool), dispersed,
+                      mis_carry)
     return state, vertex
 
 
 def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,
-          limit=None) -> tuple[Vertex, Array]:
+          limit=None, mis_ctx=None) -> tuple[Vertex, Array]:
     """Trace L subpaths from batched start states; u: [n_steps, L, N_UNIFORMS].
     `radiance`: True (camera subpaths), False (light subpaths) or an [L] per-lane flag
     (`trace_both`); `limit`: optional [L] per-lane step count (<= n_steps).
@@ -251,15 +265,17 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     every lane to run every step, so nothing is ever dropped. Each lane sees the same
     uniforms (u[its depth, its lane]) as in a loop over depths: the live records do not
     depend on the round width. A batch of at most one round per step (W >= L) runs the
-    plain loop over depths (`_trace_all`)."""
+    plain loop over depths (`_trace_all`). `mis_ctx`: the recursive MIS form's per-pass
+    `_mis_recursive.Context` (when `s0.mis` carries its recursion)."""
     static = isinstance(radiance, bool)
     L = s0.alive.shape[0]
     limit = jnp.full((L,), n_steps, jnp.int32) if limit is None else limit
     W = round_width(L, cfg.trace_split)  # lanes per round
     rounds = -(-(n_steps * L) // W)
     if W >= L:
-        return _trace_all(scene, cfg, radiance, s0, u, n_steps)
-    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, 0, 0, 0, 0))
+        return _trace_all(scene, cfg, radiance, s0, u, n_steps, mis_ctx)
+    vstep = jax.vmap(lambda sc, c, r, i, st, ui, tw: step(sc, c, r, i, st, ui, tw, mis_ctx),
+                     in_axes=(None, None, None if static else 0, 0, 0, 0, 0))
     # records and lane states packed per dtype: one gather / scatter per dtype and round
     rec_pack = Packed(_dead_records(s0, n_steps, scene.channels), 2)
     state_pack = Packed(s0, 1)
@@ -302,13 +318,14 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     return rec_pack.unpack(V), rev0
 
 
-def _trace_all(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int
-               ) -> tuple[Vertex, Array]:
+def _trace_all(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,
+               mis_ctx=None) -> tuple[Vertex, Array]:
     """One round per step (every lane every step, dead or alive): the plain loop over
     depths, without the queue's gathers and scatters. Dead lanes' records hold whatever
     their masked-out steps computed (and light lanes of `trace_both` run n_cam steps)."""
     static = isinstance(radiance, bool)
-    vstep = jax.vmap(step, in_axes=(None, None, None if static else 0, None, 0, 0))
+    vstep = jax.vmap(lambda sc, c, r, i, st, ui: step(sc, c, r, i, st, ui, None, mis_ctx),
+                     in_axes=(None, None, None if static else 0, None, 0, 0))
 
     def body(s, x):
         i, ui = x
@@ -339,15 +356,19 @@ def _dead_records(s0: WalkState, n_steps: int, C: int) -> Vertex:
         return jnp.broadcast_to(x, (n_steps, L) + x.shape[1:] if x.ndim else (n_steps, L))
 
     f = full(False)
+    mis = None
+    if s0.mis is not None:  # never read: a dead vertex takes part in no technique
+        K = s0.mis.rec.shape[-1]
+        mis = mis_recursive.Record(jnp.zeros((n_steps, L, K), dt), f)
     return Vertex(
         jax.tree.map(full, s0.o), jax.tree.map(full, s0.n_prev), jax.tree.map(full, -s0.d),
         jnp.zeros((n_steps, L, C), dt), full(jnp.ones((), dt)), full(jnp.ones((), dt)),
         full(KIND_NONE, jnp.int32), full(0, jnp.int32), full(-1, jnp.int32),
-        jnp.zeros((n_steps, L, C), dt), full(jnp.ones((), dt)), f, f, f, f, f)
+        jnp.zeros((n_steps, L, C), dt), full(jnp.ones((), dt)), f, f, f, f, f, mis)
 
 
 def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: int,
-               light0: WalkState, u_light, n_light: int):
+               light0: WalkState, u_light, n_light: int, mis_ctx=None):
     """Camera and light subpaths in one trace (one copy of `step` in the compiled program):
     the 2N lanes carry their transport mode as a per-lane flag, and each lane computes
     exactly what its own `trace` would (its uniforms, its mode, its number of steps). Returns (camera records
@@ -357,7 +378,8 @@ def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: i
     u = jnp.concatenate([u_cam[:n_cam], jnp.concatenate([u_light[:n_light], pad])], axis=1)
     s0 = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), cam0, light0)
     mode = jnp.arange(2 * N) < N
-    verts, rev0 = trace(scene, cfg, mode, s0, u, n_cam, jnp.where(mode, n_cam, n_light))
+    verts, rev0 = trace(scene, cfg, mode, s0, u, n_cam, jnp.where(mode, n_cam, n_light),
+                        mis_ctx)
     cverts = jax.tree.map(lambda a: a[:, :N], verts)
     lverts = jax.tree.map(lambda a: a[:n_light, N:], verts)
     # the light records end at n_light: their last reverse pdf is set by a connection
@@ -398,16 +420,21 @@ class PathEnds(NamedTuple):
     seg_water: Array
     alive: Array
     disp: Array  # beta carries the hero-only x C of a dispersive refraction (`_subpath`)
+    mis: Any = None  # `_mis_recursive.Record` [D+1, N, ...] (mis_form "recursive")
 
 
 def _stack0(v0, rest):
     return jnp.concatenate([v0[None], rest], axis=0)
 
 
-def _ends(p0: Vec3, n0: Vec3, wo0: Vec3, beta0, A0, B0, verts: Vertex, rest_A, rest_B) -> PathEnds:
+def _ends(p0: Vec3, n0: Vec3, wo0: Vec3, beta0, A0, B0, verts: Vertex, rest_A, rest_B,
+          mis0=None) -> PathEnds:
     N = A0.shape[0]
     f = jnp.zeros((N,), bool)
     st = _stack0
+    mis = None
+    if verts.mis is not None:  # the start vertex's record from its carry (`start_carry`)
+        mis = mis_recursive.Record(st(mis0.rec, verts.mis.rec), st(mis0.zero, verts.mis.zero))
     return PathEnds(
         Vec3(*(st(a, b) for a, b in zip(p0, verts.p))),
         Vec3(*(st(a, b) for a, b in zip(n0, verts.n))),
@@ -416,22 +443,26 @@ def _ends(p0: Vec3, n0: Vec3, wo0: Vec3, beta0, A0, B0, verts: Vertex, rest_A, r
         st(jnp.ones((N,), A0.dtype), verts.q), st(f, verts.delta),
         st(f, verts.kind == KIND_MEDIUM), st(jnp.full((N,), -1, jnp.int32), verts.kind),
         st(jnp.zeros((N,), jnp.int32), verts.mat), st(f, verts.seg_water),
-        st(jnp.ones((N,), bool), verts.alive), st(f, verts.dispersed))
+        st(jnp.ones((N,), bool), verts.alive), st(f, verts.dispersed), mis)
 
 
-def camera_ends(scene: Scene, cam_o: Vec3, verts: Vertex, n_paths: int) -> PathEnds:
-    """z_0 (the pinhole: B = 1, never a delta vertex) followed by the camera records."""
+def camera_ends(scene: Scene, cam_o: Vec3, verts: Vertex, n_paths: int, mis0=None) -> PathEnds:
+    """z_0 (the pinhole: B = 1, never a delta vertex) followed by the camera records;
+    `mis0`: z_0's `_mis_recursive.Carry` (mis_form "recursive")."""
     dt = cam_o.x.dtype
     N = n_paths
     cf = vec.from_array(jnp.broadcast_to(scene.camera.forward, (N, 3)))
     one = jnp.ones((N,), dt)
     return _ends(cam_o, cf, cf, jnp.ones((N, scene.channels), dt), one, one, verts,
-                 verts.pdf_rev, verts.pdf_fwd)
+                 verts.pdf_rev, verts.pdf_fwd, mis0)
 
 
-def light_ends(scene: Scene, e: lights.Emission, rev0, verts: Vertex, n_paths: int) -> PathEnds:
-    """y_0 (on the light, or at infinity) followed by the light records."""
-    return _ends(e.p, e.n, -e.d, e.beta0, e.pdf_pos, rev0, verts, verts.pdf_fwd, verts.pdf_rev)
+def light_ends(scene: Scene, e: lights.Emission, rev0, verts: Vertex, n_paths: int,
+               mis0=None) -> PathEnds:
+    """y_0 (on the light, or at infinity) followed by the light records; `mis0`: y_0's
+    `_mis_recursive.Carry` (mis_form "recursive")."""
+    return _ends(e.p, e.n, -e.d, e.beta0, e.pdf_pos, rev0, verts, verts.pdf_fwd, verts.pdf_rev,
+                 mis0)
 
 
 def rows(ends: PathEnds, idx) -> PathEnds:
