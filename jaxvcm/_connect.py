@@ -35,7 +35,7 @@ from ._config import RenderConfig
 from ._path import (Pdfs, both_dispersed, family_join_weights, family_weights, log_n_light_tracing,
                     mis_join, no_light_partials, pdfs, pinhole_partials, reverse_pdf)
 from ._queue import masked_map
-from ._scene import LIGHT_SKY, LIGHT_SUN, Scene
+from ._scene import LIGHT_BACKGROUND, LIGHT_SKY, LIGHT_SUN, Scene
 from ._subpath import PathEnds, rows
 from ._vec import Vec3
 
@@ -105,8 +105,10 @@ def _reverse(scene):
 
 
 def _sky_id(scene: Scene) -> int:
+    """The light an escaped camera vertex hits: the sky or the background (a scene has at
+    most one of them, `_io`); 0 when there is none (then nothing is emitted there)."""
     for k, kind in enumerate(scene.lights.kind):
-        if kind == LIGHT_SKY:
+        if kind in (LIGHT_SKY, LIGHT_BACKGROUND):
             return k
     return 0
 

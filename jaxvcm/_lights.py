@@ -2,8 +2,14 @@
 
 Light selection: probability proportional to each light's emitted power estimate
 (`Lights.power_weight`, computed at scene load from the mean over channels of the
-radiance times pi times the emitting area; the sun and sky use the area of the scene's
-bounding disk). The selection probability is part of every light pdf. It is treated
+radiance times pi times the emitting area; the sun, sky and background use the area of
+the scene's bounding disk).
+
+Lights at infinity: the sun (delta direction), the sky (constant radiance over the upper
+hemisphere, cosine-distributed about +y when sampled) and the background (constant
+radiance over every direction, uniform on the sphere when sampled: SmallVCM's
+"background" light). A scene has at most one of sky and background (the emitter hit of an
+escaped camera vertex belongs to it, `_connect._sky_id`). The selection probability is part of every light pdf. It is treated
 as a sampling decision and is detached from gradients.
 """
 
@@ -17,7 +23,7 @@ from jaxtyping import Array
 
 from . import _sampling as sampling
 from . import _vec as vec
-from ._scene import LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, Scene, bounding_sphere
+from ._scene import LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, Scene, bounding_sphere
 from ._vec import Vec3
 
 
@@ -102,6 +108,10 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
             pdf = sampling.cosine_hemisphere_pdf(wi.y)
             s = LightSample(wi, jnp.asarray(jnp.inf, dt), Le, pdf, jnp.zeros((), bool), wi.y > 0,
                             li, -wi)
+        elif kind == LIGHT_BACKGROUND:
+            wi = sampling.uniform_sphere(u1, u2)
+            s = LightSample(wi, jnp.asarray(jnp.inf, dt), Le, jnp.asarray(0.25 / jnp.pi, dt),
+                            jnp.zeros((), bool), jnp.ones((), bool), li, -wi)
         else:  # pragma: no cover
             raise ValueError(kind)
         pick = li == k
@@ -143,7 +153,8 @@ def emitted_surface(scene: Scene, light_id, wo: Vec3, n: Vec3, dist) -> tuple[Ar
 
 
 def emitted_escape(scene: Scene, d: Vec3) -> tuple[Array, Array]:
-    """Radiance of the sky along escaping direction d, and its NEE pdf (selection included)."""
+    """Radiance of the sky or background along escaping direction d, and its NEE pdf
+    (selection included)."""
     lights = scene.lights
     C = lights.radiance.shape[-1]
     dt = d.x.dtype
@@ -155,6 +166,9 @@ def emitted_escape(scene: Scene, d: Vec3) -> tuple[Array, Array]:
             up = d.y > 0
             Le = Le + jnp.where(up, lights.radiance[k], 0.0)
             pdf = pdf + jnp.where(up, sampling.cosine_hemisphere_pdf(d.y) * sel[k], 0.0)
+        elif kind == LIGHT_BACKGROUND:
+            Le = Le + lights.radiance[k]
+            pdf = pdf + (0.25 / jnp.pi) * sel[k]
     return Le, jax.lax.stop_gradient(pdf)
 
 
@@ -164,8 +178,9 @@ class Emission(NamedTuple):
 
     Area lights: y_0 is a point on the light (area pdf p_sel / A), the direction is
     cosine-distributed about the emitting normal (pdf cos / pi; spheres emit on both sides,
-    cos / (2 pi)). Sun and sky: y_0 is a direction (the sun's is fixed, the sky's is
-    cosine-distributed about +y); the ray starts on a disk of the scene's bounding radius
+    cos / (2 pi)). Sun, sky and background: y_0 is a direction (the sun's is fixed, the
+    sky's cosine-distributed about +y, the background's uniform on the sphere, pdf
+    1 / (4 pi)); the ray starts on a disk of the scene's bounding radius
     perpendicular to it, outside the bounding sphere (perpendicular-area pdf 1 / (pi R^2)).
     """
 
@@ -175,10 +190,11 @@ class Emission(NamedTuple):
     d: Vec3  # direction light travels on the first segment
     beta0: Array  # [C] 1 / (p_sel p_A): throughput of y_0 before emission (light tracing, s = 1)
     beta1: Array  # [C] throughput carried by the first ray
-    pdf_pos: Array  # light-side pdf of y_0 (area measure, or solid angle for sky, p_sel for sun)
-    pdf_dir: Array  # pdf of the first segment: solid angle (area lights) or 1/(pi R^2) (sun, sky)
+    pdf_pos: Array  # light-side pdf of y_0 (area measure; solid angle for sky and
+    #                 background; p_sel for the sun)
+    pdf_dir: Array  # pdf of the first segment: solid angle (area lights), 1/(pi R^2) at infinity
     light: Array  # light index
-    infinite: Array  # y_0 is at infinity (sun, sky)
+    infinite: Array  # y_0 is at infinity (sun, sky, background)
     delta: Array  # delta light (sun)
 
 
@@ -203,7 +219,8 @@ def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
 
 def light_point_pdf(scene: Scene, light, w_inf: Vec3):
     """Light-side pdf of y_0 (selection included): p_sel / area for area lights; for the
-    sky p_sel times the direction pdf of w_inf (pointing to the sky); p_sel for the sun."""
+    sky and background p_sel times the direction pdf of w_inf (pointing to the sky); p_sel
+    for the sun."""
     lights = scene.lights
     sel = selection_pdf(scene)
     dt = w_inf.x.dtype
@@ -216,6 +233,8 @@ def light_point_pdf(scene: Scene, light, w_inf: Vec3):
             pk = 1.0 / (4.0 * jnp.pi * r * r)
         elif kind == LIGHT_SKY:
             pk = sampling.cosine_hemisphere_pdf(w_inf.y)
+        elif kind == LIGHT_BACKGROUND:
+            pk = jnp.asarray(0.25 / jnp.pi, dt)
         else:
             pk = jnp.ones((), dt)
         pdf = jnp.where(light == k, pk * sel[k], pdf)
@@ -273,11 +292,15 @@ def sample_emission(scene: Scene, u) -> Emission:
                 d = vec.from_array(lights.direction[k])
                 pdf_pos = psel
                 delta = jnp.ones((), bool)
-            else:
+            elif kind == LIGHT_SKY:
                 loc = sampling.cosine_hemisphere(u[1], u[2])
                 w_sky = Vec3(loc.x, loc.z, loc.y)
                 d = -w_sky
                 pdf_pos = psel * sampling.cosine_hemisphere_pdf(w_sky.y)
+                delta = jnp.zeros((), bool)
+            else:  # background: y_0 a direction uniform on the sphere
+                d = -sampling.uniform_sphere(u[1], u[2])
+                pdf_pos = psel * (0.25 / jnp.pi)
                 delta = jnp.zeros((), bool)
             t1, t2 = vec.onb(d)
             o = cb - d * (rb * 1.01) + (t1 * dx + t2 * dy) * rb

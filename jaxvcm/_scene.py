@@ -28,8 +28,10 @@ LIGHT_RECT = 0  # one-sided rectangular area light, emits on the side its normal
 LIGHT_SPHERE = 1  # spherical area light, emits on both sides of its surface
 LIGHT_SUN = 2  # directional (delta) light, irradiance on a plane normal to it
 LIGHT_SKY = 3  # constant radiance from the upper hemisphere (directions with y > 0)
+LIGHT_BACKGROUND = 4  # constant radiance from every direction (SmallVCM's background light)
 
-LIGHT_NAMES = {LIGHT_RECT: "rect", LIGHT_SPHERE: "sphere", LIGHT_SUN: "sun", LIGHT_SKY: "sky"}
+LIGHT_NAMES = {LIGHT_RECT: "rect", LIGHT_SPHERE: "sphere", LIGHT_SUN: "sun", LIGHT_SKY: "sky",
+               LIGHT_BACKGROUND: "background"}
 MAT_NAMES = {MAT_DIFFUSE: "diffuse", MAT_DIELECTRIC: "dielectric", MAT_MIRROR: "mirror"}
 PHASE_NAMES = {PHASE_ISOTROPIC: "isotropic", PHASE_HG: "hg", PHASE_WATER: "water"}
 

@@ -5,6 +5,8 @@ Schema (metres, y up; "spectrum" = a number or a list of C numbers):
   name = "pool"                                    # optional
   [camera]  position, target, up = [0,1,0], fov (vertical, degrees), width, height
   [materials.NAME]  type = "diffuse" | "mirror", albedo = spectrum
+                    type = "glass", ior      (smooth dielectric: inside is where the
+                                              shape's normal points away from)
   [[shapes]] type = "rect":   center, normal, size = [w, h], up (tangent hint), material
   [[shapes]] type = "sphere": center, radius, material
   [[shapes]] type = "basin":  min = [x0, floor, z0], max = [x1, top, z1],
@@ -18,6 +20,9 @@ Schema (metres, y up; "spectrum" = a number or a list of C numbers):
   [[lights]] type = "sphere": center, radius, radiance                (emits both ways)
   [[lights]] type = "sun":    direction (the way light travels), irradiance
   [[lights]] type = "sky":    radiance                   (directions with y > 0 only)
+  [[lights]] type = "background": radiance               (every direction; SmallVCM's
+                                                          background; at most one of
+                                                          sky and background)
 
 Valid ranges (anything outside is a one-line error naming the field; the constants are in
 `_toml.py` and `_scene_sections.py`). They keep every derived value finite in float32:
@@ -53,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._scene import (
-    LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, Camera, Lights, Materials, Rects, Scene, Spheres, Water,
+    LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, Camera, Lights, Materials, Rects, Scene, Spheres, Water,
 )
 from ._scene_sections import (
     _Parts, parse_camera, parse_lights, parse_materials, parse_shapes, parse_water,
@@ -133,7 +138,9 @@ def _bounds(pos: np.ndarray, parts: _Parts, water: dict) -> np.ndarray:
 
 
 def _light_power(parts: _Parts, bounds: np.ndarray) -> list:
-    """Emitted power of each light (sun and sky: through the scene's bounding sphere)."""
+    """Emitted power of each light (sun, sky, background: into the scene's bounding
+    sphere: the sun's irradiance and the sky's pi L through its disk, the background's pi L
+    through its whole surface)."""
     rb = 0.5 * np.linalg.norm(bounds[1] - bounds[0])
     power = []
     for k, sh, rad in zip(parts.l_kind, parts.l_shape, parts.l_rad):
@@ -144,6 +151,8 @@ def _light_power(parts: _Parts, bounds: np.ndarray) -> list:
             power.append(rad.mean() * math.pi * 4 * math.pi * parts.sph_r[sh] ** 2)
         elif k == LIGHT_SUN:
             power.append(rad.mean() * math.pi * rb * rb)
+        elif k == LIGHT_BACKGROUND:
+            power.append(rad.mean() * math.pi * 4 * math.pi * rb * rb)
         else:
             power.append(rad.mean() * math.pi * math.pi * rb * rb)
     return power

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from .._scene import (
-    LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR,
+    LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR,
     PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER,
 )
 from ._toml import CHANNELS, COORD, SIZE, Range, _Ctx, key_path
@@ -144,10 +144,17 @@ def parse_materials(ctx: _Ctx, mats, parts: _Parts) -> None:
     parts.named = mats
     for mname, m in mats.items():
         f = key_path("materials", mname)
-        ctx.table(m, {"type", "albedo"}, {"type"}, f)
-        kind = ctx.string(m["type"], f + ".type", ("diffuse", "mirror"))
-        albedo = _albedo(ctx, m.get("albedo", 1.0 if kind == "mirror" else 0.5), f + ".albedo")
+        ctx.table(m, {"type", "albedo", "ior"}, {"type"}, f)
+        kind = ctx.string(m["type"], f + ".type", ("diffuse", "mirror", "glass"))
         parts.mat_names.append(mname)
+        if kind == "glass":  # a smooth dielectric: exact Fresnel, lossless
+            ctx.table(m, {"type", "ior"}, {"type", "ior"}, f)
+            parts.mat_kind.append(MAT_DIELECTRIC)
+            parts.mat_albedo.append(np.ones(CHANNELS))
+            parts.mat_ior.append(ctx.number(m["ior"], f + ".ior", IOR))
+            continue
+        ctx.table(m, {"type", "albedo"}, {"type"}, f)
+        albedo = _albedo(ctx, m.get("albedo", 1.0 if kind == "mirror" else 0.5), f + ".albedo")
         parts.mat_kind.append(MAT_DIFFUSE if kind == "diffuse" else MAT_MIRROR)
         parts.mat_albedo.append(albedo)
         parts.mat_ior.append(1.0)
@@ -278,7 +285,14 @@ def _sky_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     return LIGHT_SKY, -1, rad, np.zeros(3)
 
 
-_LIGHTS = {"rect": _rect_light, "sphere": _sphere_light, "sun": _sun_light, "sky": _sky_light}
+def _background_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
+    ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
+    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
+    return LIGHT_BACKGROUND, -1, rad, np.zeros(3)
+
+
+_LIGHTS = {"rect": _rect_light, "sphere": _sphere_light, "sun": _sun_light, "sky": _sky_light,
+           "background": _background_light}
 
 
 def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
@@ -289,6 +303,9 @@ def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
         if not isinstance(l, dict) or "type" not in l:
             ctx.fail(f + ".type", "missing required field")
         kind = ctx.string(l["type"], f + ".type", tuple(_LIGHTS))
+        if kind in ("sky", "background") and any(k in (LIGHT_SKY, LIGHT_BACKGROUND)
+                                                  for k in parts.l_kind):
+            ctx.fail(f + ".type", "at most one sky or background light per scene")
         k, shape, rad, dvec = _LIGHTS[kind](ctx, l, f, parts)
         parts.l_kind.append(k)
         parts.l_shape.append(shape)
