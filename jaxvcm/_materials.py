@@ -1,4 +1,12 @@
-"""Surface scattering: Lambertian, ideal mirror, smooth dielectric (exact Fresnel).
+"""Surface scattering: Lambertian, ideal mirror, smooth dielectric (exact Fresnel), and
+glossy: Lambertian k_d plus a normalised Phong lobe k_s (n + 2) / (2 pi) cos^n(alpha),
+alpha the angle between wi and wo's mirror direction (SmallVCM's model; Lafortune &
+Willems 1994), sampled by lobe (probabilities from the two reflectances' channel means)
+with the lobe's pdf (n + 1) / (2 pi) cos^n(alpha) about the mirror direction, and
+evaluated with the mixture pdf of both lobes. Its cos(alpha) = 2 (wo.n)(wi.n) - wo.wi is
+symmetric in wo and wi, so f is reciprocal; without the horizon the lobe's directional
+albedo is cos(theta_o) (the mean of cos(theta_i) over the lobe is cos(theta_r) (n + 1) /
+(n + 2)), so k_d + k_s <= 1 conserves energy.
 
 Conventions (pbrt): wo points away from the surface towards where the path came from,
 wi away from the surface towards where it goes next; n is the geometric normal.
@@ -21,12 +29,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
 from . import _sampling as sampling
 from . import _vec as vec
-from ._scene import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR
+from ._scene import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
 from ._vec import Vec3
 
 
@@ -52,10 +61,34 @@ class BSDFSample(NamedTuple):
     disperse: Array  # a refraction at a dispersive dielectric: channels > 0 terminated
 
 
-def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance=True
-                ) -> BSDFSample:
+def _glossy_parts(albedo, glossy, exponent, wo: Vec3, wi: Vec3, ns: Vec3):
+    """(f [C], pdf) of the glossy material for wi on ns's side (the normal on wo's side):
+    f = k_d / pi + k_s (n + 2) / (2 pi) c^n, pdf = P_d cos_i / pi + P_g (n + 1) / (2 pi) c^n,
+    c = max(cos(wi, mirror of wo), 0); P_d, P_g the lobe probabilities (`_lobe_probs`)."""
+    cos_i = jnp.maximum(vec.dot(wi, ns), 0.0)
+    c = vec.dot(vec.reflect(wo, ns), wi)
+    pos = c > 0
+    cn = jnp.where(pos, jnp.exp(exponent * jnp.log(jnp.where(pos, c, 1.0))), 0.0)  # c^n
+    p_d = _lobe_probs(albedo, glossy)
+    f = albedo * sampling.INV_PI + glossy * ((exponent + 2.0) * 0.5 * sampling.INV_PI * cn)
+    pdf = p_d * cos_i * sampling.INV_PI + (1.0 - p_d) * (exponent + 1.0) * 0.5 * sampling.INV_PI * cn
+    return f, pdf
+
+
+def _lobe_probs(albedo, glossy):
+    """P(Lambertian lobe) of the glossy material: mean k_d / (mean k_d + mean k_s) (a
+    sampling decision: detached; 1 when both are 0)."""
+    a = jax.lax.stop_gradient(jnp.mean(albedo, axis=-1))
+    g = jax.lax.stop_gradient(jnp.mean(glossy, axis=-1))
+    t = a + g
+    return jnp.where(t > 0, a / jnp.where(t > 0, t, 1.0), 1.0)
+
+
+def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance=True,
+                glossy=None, exponent=None) -> BSDFSample:
     """Sample wi for material `kind` (a traced int selecting among the static kinds).
-    `radiance`: the transport mode, a static bool or a traced per-lane flag."""
+    `radiance`: the transport mode, a static bool or a traced per-lane flag. `glossy`,
+    `exponent`: the glossy material's k_s [C] and n (None: no glossy material)."""
     cos_o = vec.dot(wo, n)
     side = jnp.where(cos_o >= 0, 1.0, -1.0).astype(n.x.dtype)
     ns = n * side  # normal on wo's side
@@ -101,16 +134,43 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance=T
     disperse = transmit & dispersive
     # A diffuse sample exactly on the horizon carries nothing.
     weight = jnp.where(is_d & (loc.z <= 0), 0.0, weight)
+    if glossy is not None:
+        # ---- glossy: pick a lobe with u_lobe, sample it, weight by the mixture pdf ----
+        is_g = kind == MAT_GLOSSY
+        p_d = _lobe_probs(albedo, glossy)
+        r = vec.reflect(wo, ns)
+        n_s = jax.lax.stop_gradient(exponent)  # the sampled direction: a sampling decision
+        cos_a = jnp.power(u1, 1.0 / (n_s + 1.0))
+        sin_a = jnp.sqrt(jnp.maximum(0.0, 1.0 - cos_a * cos_a))
+        phi = 2.0 * jnp.pi * u2
+        lobe = Vec3(sin_a * jnp.cos(phi), sin_a * jnp.sin(phi), cos_a)
+        wi_gl = vec.where(u_lobe < p_d, wi_d, vec.to_world(lobe, r))
+        f, pdf_gl = _glossy_parts(albedo, glossy, exponent, wo, wi_gl, ns)
+        cos_i = vec.dot(wi_gl, ns)
+        ok = (cos_i > 0) & (pdf_gl > 0)
+        w_gl = jnp.where(ok, f * cos_i / jnp.where(ok, pdf_gl, 1.0), 0.0)
+        wi = vec.where(is_g, wi_gl, wi)
+        weight = jnp.where(is_g, w_gl, weight)
+        pdf = jnp.where(is_g, pdf_gl, pdf)
+        delta = delta & ~is_g
     return BSDFSample(wi, weight, pdf, delta, transmit, disperse)
 
 
-def eval_bsdf(kind, albedo, wo: Vec3, wi: Vec3, n: Vec3) -> tuple[Array, Array]:
+def eval_bsdf(kind, albedo, wo: Vec3, wi: Vec3, n: Vec3, glossy=None, exponent=None
+              ) -> tuple[Array, Array]:
     """f(wo, wi) |cos(wi, n)| and the solid-angle pdf of sampling wi; zero for delta lobes.
-    Lambertian surfaces are two-sided: wo and wi must lie on the same side."""
+    Lambertian and glossy surfaces are two-sided: wo and wi must lie on the same side.
+    `glossy`, `exponent`: the glossy material's k_s [C] and n (None: no glossy material)."""
     cos_o = vec.dot(wo, n)
     cos_i = vec.dot(wi, n)
     same = cos_o * cos_i > 0
     is_d = (kind == MAT_DIFFUSE) & same
     f = jnp.where(is_d, albedo * (sampling.INV_PI * jnp.abs(cos_i)), 0.0)
     pdf = jnp.where(is_d, sampling.INV_PI * jnp.abs(cos_i), 0.0)
+    if glossy is not None:
+        is_g = (kind == MAT_GLOSSY) & same
+        ns = n * jnp.where(cos_o >= 0, 1.0, -1.0).astype(n.x.dtype)
+        fg, pg = _glossy_parts(albedo, glossy, exponent, wo, wi, ns)
+        f = jnp.where(is_g, fg * jnp.abs(cos_i), f)
+        pdf = jnp.where(is_g, pg, pdf)
     return f, pdf

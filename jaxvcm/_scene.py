@@ -19,6 +19,7 @@ from jaxtyping import Array, Float, Int
 MAT_DIFFUSE = 0  # Lambertian, two-sided
 MAT_DIELECTRIC = 1  # smooth dielectric with exact Fresnel (the water surface)
 MAT_MIRROR = 2  # ideal specular reflector
+MAT_GLOSSY = 3  # Lambertian + normalised Phong lobe (SmallVCM's glossy model), two-sided
 
 PHASE_ISOTROPIC = 0
 PHASE_HG = 1
@@ -32,7 +33,8 @@ LIGHT_BACKGROUND = 4  # constant radiance from every direction (SmallVCM's backg
 
 LIGHT_NAMES = {LIGHT_RECT: "rect", LIGHT_SPHERE: "sphere", LIGHT_SUN: "sun", LIGHT_SKY: "sky",
                LIGHT_BACKGROUND: "background"}
-MAT_NAMES = {MAT_DIFFUSE: "diffuse", MAT_DIELECTRIC: "dielectric", MAT_MIRROR: "mirror"}
+MAT_NAMES = {MAT_DIFFUSE: "diffuse", MAT_DIELECTRIC: "dielectric", MAT_MIRROR: "mirror",
+             MAT_GLOSSY: "glossy"}
 PHASE_NAMES = {PHASE_ISOTROPIC: "isotropic", PHASE_HG: "hg", PHASE_WATER: "water"}
 
 # Shape classes reported by the intersector (static ids).
@@ -60,6 +62,10 @@ class Materials(eqx.Module):
     # wavelength): refractions follow the hero and terminate the other channels
     # (`_materials.sample_bsdf`).
     ior: Float[Array, "M"] | Float[Array, "M C"]
+    # MAT_GLOSSY: the Phong lobe's reflectance k_s [M C] and exponent n [M] (k_s = 0, n = 1
+    # for the other kinds); `albedo` is then the Lambertian part k_d
+    glossy: Float[Array, "M C"]
+    exponent: Float[Array, "M"]
 
     @property
     def dispersive(self) -> bool:

@@ -33,7 +33,7 @@ from . import _mis_recursive as mis_recursive
 from . import _vec as vec
 from ._config import RenderConfig
 from ._queue import Packed, round_width
-from ._scene import MAT_DIFFUSE, Scene, Water
+from ._scene import MAT_DIFFUSE, MAT_GLOSSY, Scene, Water
 from ._vec import Vec3
 
 KIND_MEDIUM = 3  # vertex kind of a scattering event in the water (after the MAT_* kinds)
@@ -86,8 +86,18 @@ def rr(index, q, cfg: RenderConfig):
 
 
 def local_q(kind, albedo):
+    """Local survival probability: the largest channel of the reflectance (diffuse; glossy:
+    k_d + k_s, passed as `albedo`) clipped to [0.05, 0.95]; Q_SPECULAR at delta vertices."""
     q_d = jnp.clip(jax.lax.stop_gradient(jnp.max(albedo, axis=-1)), 0.05, 0.95)
-    return jnp.where(kind == MAT_DIFFUSE, q_d, Q_SPECULAR)
+    return jnp.where((kind == MAT_DIFFUSE) | (kind == MAT_GLOSSY), q_d, Q_SPECULAR)
+
+
+def _glossy(scene: Scene, mat):
+    """(k_s [C], n) of material `mat` if the scene has a glossy material, else (None, None)
+    (the glossy lobes are then not in the compiled program)."""
+    if MAT_GLOSSY not in scene.materials.kind:
+        return None, None
+    return scene.materials.glossy[mat], scene.materials.exponent[mat]
 
 
 def dist_pdf(water: Water, seg_water, target_medium, d):
@@ -113,7 +123,8 @@ def bsdf_pdf(scene: Scene, kind, mat, medium_d: Vec3, wo: Vec3, wi: Vec3, n: Vec
     """Solid-angle pdf of sampling wi at a vertex with outgoing-side direction wo (pointing
     away from it), for the non-delta kinds; delta kinds return 0 (callers remap)."""
     albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
-    _, pdf_s = materials.eval_bsdf(kind, albedo, wo, wi, n)
+    _, pdf_s = materials.eval_bsdf(kind, albedo, wo, wi, n,
+                                   *_glossy(scene, jnp.maximum(mat, 0)))
     if scene.water.enabled:
         # phase functions: mu between the propagation direction (-wo) and wi
         ph = media.phase_eval(scene.water.phase_kind, scene.water, vec.dot(-wo, wi))
@@ -126,7 +137,7 @@ def eval_f(scene: Scene, kind, mat, wo: Vec3, wi: Vec3, n: Vec3):
     function in the medium (sigma_s is already in the throughput). [C]"""
     C = scene.channels
     albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
-    f, _ = materials.eval_bsdf(kind, albedo, wo, wi, n)
+    f, _ = materials.eval_bsdf(kind, albedo, wo, wi, n, *_glossy(scene, jnp.maximum(mat, 0)))
     if scene.water.enabled:
         ph = media.phase_eval(scene.water.phase_kind, scene.water, vec.dot(-wo, wi))
         f = jnp.where(kind == KIND_MEDIUM, ph * jnp.ones((C,), ph.dtype), f)
@@ -200,7 +211,9 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     p_rec = vec.where(esc, s.d, p)  # escaped: store the direction to the sky
 
     # ---- sample the continuation ----
-    bs = materials.sample_bsdf(kind, albedo, ior, wo, n, u[2], u[3], u[4], radiance=radiance)
+    ks, n_exp = _glossy(scene, mat)
+    bs = materials.sample_bsdf(kind, albedo, ior, wo, n, u[2], u[3], u[4], radiance=radiance,
+                               glossy=ks, exponent=n_exp)
     if water.enabled:
         wi_ph, pdf_ph = media.phase_sample(water.phase_kind, water, s.d, u[2], u[3])
         wi = vec.where(scatter, wi_ph, bs.wi)
@@ -217,7 +230,8 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     rev = jnp.where(delta, 1.0, rev)
 
     # ---- Russian roulette (local survival probability, applied by index) ----
-    q_loc = jnp.where(scatter, Q_SPECULAR, local_q(kind, albedo))
+    q_loc = jnp.where(scatter, Q_SPECULAR,
+                      local_q(kind, albedo if ks is None else albedo + ks))
     q = rr(index + 1, q_loc, cfg)
     # ---- dispersion (hero-wavelength termination, `_materials` doc) ----
     # the first dispersive refraction of the subpath turns beta into the hero's

@@ -5,6 +5,8 @@ Schema (metres, y up; "spectrum" = a number or a list of C numbers):
   name = "pool"                                    # optional
   [camera]  position, target, up = [0,1,0], fov (vertical, degrees), width, height
   [materials.NAME]  type = "diffuse" | "mirror", albedo = spectrum
+                    type = "glossy", albedo (Lambertian k_d, default 0), glossy (Phong
+                                     k_s, default 0.5), exponent (default 90); two-sided
                     type = "glass", ior      (smooth dielectric: inside is where the
                                               shape's normal points away from)
   [[shapes]] type = "rect":   center, normal, size = [w, h], up (tangent hint), material
@@ -34,7 +36,8 @@ Valid ranges (anything outside is a one-line error naming the field; the constan
   directions (normal, up, direction)  not all zero; a rect's `up` not parallel to its normal
   camera.fov                          0.01 .. 179 degrees (vertical)
   camera.width, camera.height         1 .. 16384 (also --width / --height)
-  albedo (materials and emitters)     0 .. 1
+  albedo (materials and emitters)     0 .. 1 (glossy: albedo + glossy <= 1 per channel)
+  exponent (glossy)                   1 .. 1e5
   radiance, irradiance                0 .. 1e15 (> 0 in some channel)
   sigma_a, sigma_s                    0 .. 1e6 1/m
   ior                                 1 .. 3 (1: an index-matched boundary, no refraction)
@@ -170,7 +173,8 @@ def _to_scene(cam: dict, p: _Parts, water: dict, bounds, power, name: str, dtype
 
     camera = Camera(A(cam["pos"]), A(cam["fwd"]), A(cam["right"]), A(cam["up"]),
                     A(cam["tan_half_fov"]), cam["width"], cam["height"])
-    materials = Materials(tuple(p.mat_kind), A(np.array(p.mat_albedo)), A(p.mat_ior))
+    materials = Materials(tuple(p.mat_kind), A(np.array(p.mat_albedo)), A(p.mat_ior),
+                          A(np.array(p.mat_glossy)), A(p.mat_exponent))
     rects = Rects(arr3(p.rect_p0), arr3(p.rect_e1), arr3(p.rect_e2), I(p.rect_mat),
                   I(p.rect_light))
     spheres = Spheres(arr3(p.sph_c), A(p.sph_r), I(p.sph_mat), I(p.sph_light))

@@ -15,7 +15,8 @@ import math
 import numpy as np
 
 from .._scene import (
-    LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR,
+    LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE,
+    MAT_GLOSSY, MAT_MIRROR,
     PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER,
 )
 from ._toml import CHANNELS, COORD, SIZE, Range, _Ctx, key_path
@@ -31,6 +32,7 @@ WAVE_K = Range(-1e4, 1e4, "rad/m")  # wavelengths down to 0.6 mm
 WAVE_PHASE = Range(-1e6, 1e6, "rad")
 HG_G = Range(-0.999, 0.999)
 WATER_B = Range(0.0, 10.0)  # the 1 + b cos^2 phase of water (0.835 by Morel)
+EXPONENT = Range(1.0, 1e5)  # Phong exponent: a lobe of ~1/sqrt(n) rad, 0.2 degrees at 1e5
 PARALLEL = 0.999  # |cos| between a rectangle's normal and its `up` hint above which it fails
 
 
@@ -52,6 +54,8 @@ class _Parts:
     mat_kind: list = dataclasses.field(default_factory=list)
     mat_albedo: list = dataclasses.field(default_factory=list)
     mat_ior: list = dataclasses.field(default_factory=list)
+    mat_glossy: list = dataclasses.field(default_factory=list)
+    mat_exponent: list = dataclasses.field(default_factory=list)
     rect_p0: list = dataclasses.field(default_factory=list)
     rect_e1: list = dataclasses.field(default_factory=list)
     rect_e2: list = dataclasses.field(default_factory=list)
@@ -68,11 +72,13 @@ class _Parts:
     basin: tuple | None = None  # (min, max) of the last basin
     sizes: list = dataclasses.field(default_factory=list)  # (field, smallest side or radius)
 
-    def add_material(self, kind, albedo, ior=1.0) -> int:
+    def add_material(self, kind, albedo, ior=1.0, glossy=0.0, exponent=1.0, name=None) -> int:
         self.mat_kind.append(kind)
         self.mat_albedo.append(np.asarray(albedo, float) * np.ones(CHANNELS))
         self.mat_ior.append(ior)
-        self.mat_names.append(f"<internal {len(self.mat_kind)}>")
+        self.mat_glossy.append(np.asarray(glossy, float) * np.ones(CHANNELS))
+        self.mat_exponent.append(float(exponent))
+        self.mat_names.append(name or f"<internal {len(self.mat_kind)}>")
         return len(self.mat_kind) - 1
 
     def mat_ref(self, ctx: _Ctx, v, field: str) -> int:
@@ -144,20 +150,28 @@ def parse_materials(ctx: _Ctx, mats, parts: _Parts) -> None:
     parts.named = mats
     for mname, m in mats.items():
         f = key_path("materials", mname)
-        ctx.table(m, {"type", "albedo", "ior"}, {"type"}, f)
-        kind = ctx.string(m["type"], f + ".type", ("diffuse", "mirror", "glass"))
-        parts.mat_names.append(mname)
+        ctx.table(m, {"type", "albedo", "ior", "glossy", "exponent"}, {"type"}, f)
+        kind = ctx.string(m["type"], f + ".type", ("diffuse", "mirror", "glass", "glossy"))
         if kind == "glass":  # a smooth dielectric: exact Fresnel, lossless
             ctx.table(m, {"type", "ior"}, {"type", "ior"}, f)
-            parts.mat_kind.append(MAT_DIELECTRIC)
-            parts.mat_albedo.append(np.ones(CHANNELS))
-            parts.mat_ior.append(ctx.number(m["ior"], f + ".ior", IOR))
-            continue
-        ctx.table(m, {"type", "albedo"}, {"type"}, f)
-        albedo = _albedo(ctx, m.get("albedo", 1.0 if kind == "mirror" else 0.5), f + ".albedo")
-        parts.mat_kind.append(MAT_DIFFUSE if kind == "diffuse" else MAT_MIRROR)
-        parts.mat_albedo.append(albedo)
-        parts.mat_ior.append(1.0)
+            parts.add_material(MAT_DIELECTRIC, 1.0, ctx.number(m["ior"], f + ".ior", IOR),
+                               name=mname)
+        elif kind == "glossy":  # Lambertian k_d + normalised Phong k_s (SmallVCM's model)
+            ctx.table(m, {"type", "albedo", "glossy", "exponent"}, {"type"}, f)
+            kd = _albedo(ctx, m.get("albedo", 0.0), f + ".albedo")
+            ks = _albedo(ctx, m.get("glossy", 0.5), f + ".glossy")
+            for i, x in enumerate(kd + ks):
+                if x > 1:
+                    ctx.fail(f + ".glossy", f"albedo + glossy must be <= 1 (energy "
+                                            f"conservation), got {x:g} in channel {i}")
+            n = ctx.number(m.get("exponent", 90.0), f + ".exponent", EXPONENT)
+            parts.add_material(MAT_GLOSSY, kd, 1.0, ks, n, name=mname)
+        else:
+            ctx.table(m, {"type", "albedo"}, {"type"}, f)
+            albedo = _albedo(ctx, m.get("albedo", 1.0 if kind == "mirror" else 0.5),
+                             f + ".albedo")
+            parts.add_material(MAT_DIFFUSE if kind == "diffuse" else MAT_MIRROR, albedo,
+                               name=mname)
 
 
 # ---------------------------------------------------------------- [[shapes]]

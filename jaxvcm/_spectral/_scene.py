@@ -166,6 +166,7 @@ class SpectralScene(eqx.Module):
     phase_b: float = eqx.field(static=True, default=PURE_WATER_PHASE_B)
     dispersion: str = eqx.field(static=True, default="off")  # "off" | "hero" | "exact"
     phase_from_scene: bool = eqx.field(static=True, default=False)  # keep the scene's g, b
+    glossy: Float[Array, "M K"] | None = None  # the glossy materials' k_s spectra
 
     def ior_at(self, lam: Array) -> Array:
         """The water's index at lam: `ior` without dispersion; with dispersion the
@@ -207,7 +208,9 @@ class SpectralScene(eqx.Module):
         water = dataclasses.replace(w, phase_kind=self.phase_kind if w.enabled else w.phase_kind,
                                     sigma_a=sig_a, sigma_s=sig_s, g=g, b=b,
                                     ior=(ior.reshape(-1)[0] if w.enabled else w.ior))
-        materials = dataclasses.replace(s.materials, albedo=albedo, ior=mat_ior)
+        glossy = (jnp.zeros((albedo.shape[0], C), dt) if self.glossy is None
+                  else _interp_rows(lam, self.glossy.astype(dt)))
+        materials = dataclasses.replace(s.materials, albedo=albedo, ior=mat_ior, glossy=glossy)
         lights = dataclasses.replace(s.lights, radiance=emission)
         return dataclasses.replace(s, materials=materials, water=water, lights=lights)
 
@@ -245,6 +248,7 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
     water = WaterModel() if water is None else water
     dt = scene.bounds.dtype
     albedo = np.stack([upsample_reflectance(a) for a in np.asarray(scene.materials.albedo)])
+    glossy = np.stack([upsample_reflectance(a) for a in np.asarray(scene.materials.glossy)])
     emission = np.stack([
         upsample_emission(r, sun if k == LIGHT_SUN else "D65", sun_temperature)
         for k, r in zip(scene.lights.kind, np.asarray(scene.lights.radiance))])
@@ -264,4 +268,5 @@ def spectral_scene(scene: Scene, water: WaterModel | None = None, n_wavelengths:
     A = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype=dt)  # noqa: E731
     water = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dt) if eqx.is_array(x) else x, water)
     return SpectralScene(scene, water, A(albedo), A(emission), A(_tables()["cmf"]), A(n),
-                         n_wavelengths, kind, pb, modes[dispersion], phase == "scene")
+                         n_wavelengths, kind, pb, modes[dispersion], phase == "scene",
+                         A(glossy))
