@@ -35,7 +35,7 @@ from ._config import RenderConfig
 from ._path import (Pdfs, both_dispersed, family_join_weights, family_weights, log_n_light_tracing,
                     mis_join, no_light_partials, pdfs, pinhole_partials, reverse_pdf)
 from ._queue import masked_map
-from ._scene import LIGHT_BACKGROUND, LIGHT_SKY, LIGHT_SUN, Scene
+from ._scene import DELTA_LIGHTS, LIGHT_BACKGROUND, LIGHT_SKY, Scene
 from ._subpath import PathEnds, rows
 from ._vec import Vec3
 
@@ -158,7 +158,7 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
         return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
     z, zp = rows(cam, js), rows(cam, js - 1)
     ls = vv(lambda p_, u: lights.sample_light(scene, p_, u[0], u[1], u[2]))(z.p, u_nee)
-    is_delta_l = jnp.asarray([k == LIGHT_SUN for k in scene.lights.kind])[ls.light]
+    is_delta_l = jnp.asarray([k in DELTA_LIGHTS for k in scene.lights.kind])[ls.light]
     inf = ~jnp.isfinite(ls.dist)
     dist = jnp.where(inf, 0.0, ls.dist)
     y = z.p + ls.wi * dist
@@ -219,10 +219,10 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     pix, imp, inside = vv(lambda w_: camera_importance(scene, w_))(w)
     Tr = _tr(scene, wseg, d)
     to_cam = -w
-    # y_0: emitted radiance towards the camera; y_i>0: the scattering factor
-    Le0 = vv(lambda l, n_, w_: lights.emitted_surface(scene, l, w_, n_, jnp.ones((), dt))[0])(
+    # y_0: what it emits towards the camera (Le |cos|; a point light's I); y_i>0: the
+    # scattering factor
+    f0 = vv(lambda l, n_, w_: lights.emitted_toward(scene, l, w_, n_))(
         jnp.broadcast_to(e.light, (J, N)), y.n, to_cam)
-    f0 = Le0 * jnp.abs(vec.dot(y.n, to_cam))[..., None]
     fi = _f(scene)(y.kind, y.mat, y.wo, to_cam, y.n)
     fterm = jnp.where(first[..., None], f0, fi)
     contrib = (y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30))[..., None]
@@ -370,7 +370,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
     dt = cam.A.dtype
     water = scene.water
     log_n = log_n_light_tracing(cfg, N, dt)
-    is_delta = jnp.asarray([k == LIGHT_SUN for k in scene.lights.kind])
+    is_delta = jnp.asarray([k in DELTA_LIGHTS for k in scene.lights.kind])
     zs = rows(cam, js)
     j_of = jnp.asarray(js, jnp.int32)
     sg = jax.lax.stop_gradient
@@ -462,9 +462,9 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
         pix, imp, inside = camera_importance(scene, w)
         Tr = _tr_one(scene, wseg, d)
         to_cam = -w
-        # y_0: emitted radiance towards the camera; y_i>0: the scattering factor
-        Le0 = lights.emitted_surface(scene, e.light[n], to_cam, y.n, jnp.ones((), dt))[0]
-        f0 = Le0 * jnp.abs(vec.dot(y.n, to_cam))
+        # y_0: what it emits towards the camera (Le |cos|; a point light's I); y_i>0: the
+        # scattering factor
+        f0 = lights.emitted_toward(scene, e.light[n], to_cam, y.n)
         fi = subpath.eval_f(scene, y.kind, y.mat, y.wo, to_cam, y.n)
         fterm = jnp.where(first, f0, fi)
         contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30)) / (N * cfg.chunks)

@@ -9,7 +9,12 @@ Lights at infinity: the sun (delta direction), the sky (constant radiance over t
 hemisphere, cosine-distributed about +y when sampled) and the background (constant
 radiance over every direction, uniform on the sphere when sampled: SmallVCM's
 "background" light). A scene has at most one of sky and background (the emitter hit of an
-escaped camera vertex belongs to it, `_connect._sky_id`). The selection probability is part of every light pdf. It is treated
+escaped camera vertex belongs to it, `_connect._sky_id`).
+
+Point lights (SmallVCM's point light): intensity I (W/sr) from a point, isotropic; a
+delta position like the sun's delta direction: next-event estimation's "pdf" is the
+selection probability (the irradiance I / d^2 arrives along -wi), emission starts at the
+point with a direction uniform on the sphere (pdf 1 / (4 pi)), and no path can hit it. The selection probability is part of every light pdf. It is treated
 as a sampling decision and is detached from gradients.
 """
 
@@ -23,16 +28,17 @@ from jaxtyping import Array
 
 from . import _sampling as sampling
 from . import _vec as vec
-from ._scene import LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, Scene, bounding_sphere
+from ._scene import (LIGHT_BACKGROUND, LIGHT_POINT, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN,
+                     Scene, bounding_sphere)
 from ._vec import Vec3
 
 
 class LightSample(NamedTuple):
     wi: Vec3  # unit direction from the shading point towards the light
     dist: Array  # distance to the sampled point, inf for sun and sky
-    Le: Array  # [C] radiance (area, sky) or irradiance (sun) arriving along -wi
-    pdf_w: Array  # solid-angle pdf including selection probability; 1 for the sun
-    delta: Array  # sun: a delta distribution (MIS weight 1, no BSDF-sampling counterpart)
+    Le: Array  # [C] radiance (area, sky) or irradiance (sun; point: I / d^2) along -wi
+    pdf_w: Array  # solid-angle pdf including selection probability; p_sel for sun, point
+    delta: Array  # sun, point: a delta distribution (no BSDF-sampling counterpart)
     valid: Array  # False: back side of a one-sided light, or sky below the horizon
     light: Array  # index of the chosen light
     n: Vec3  # normal at the sampled light point (area lights)
@@ -108,6 +114,13 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
             pdf = sampling.cosine_hemisphere_pdf(wi.y)
             s = LightSample(wi, jnp.asarray(jnp.inf, dt), Le, pdf, jnp.zeros((), bool), wi.y > 0,
                             li, -wi)
+        elif kind == LIGHT_POINT:
+            dv = vec.from_array(lights.position[k]) - p
+            d2 = vec.dot(dv, dv)
+            dist = jnp.sqrt(d2)
+            wi = dv / jnp.maximum(dist, 1e-30)
+            s = LightSample(wi, dist, Le / jnp.maximum(d2, 1e-30), jnp.ones((), dt),
+                            jnp.ones((), bool), d2 > 0, li, -wi)
         elif kind == LIGHT_BACKGROUND:
             wi = sampling.uniform_sphere(u1, u2)
             s = LightSample(wi, jnp.asarray(jnp.inf, dt), Le, jnp.asarray(0.25 / jnp.pi, dt),
@@ -195,12 +208,13 @@ class Emission(NamedTuple):
     pdf_dir: Array  # pdf of the first segment: solid angle (area lights), 1/(pi R^2) at infinity
     light: Array  # light index
     infinite: Array  # y_0 is at infinity (sun, sky, background)
-    delta: Array  # delta light (sun)
+    delta: Array  # delta light (sun, point)
 
 
 def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
     """Pdf of the emission direction w (leaving y_0) for light `light` with normal n: solid
-    angle for area lights; for sun and sky the perpendicular-area pdf 1/(pi R^2)."""
+    angle for area lights and point lights (1 / (4 pi)); at infinity the perpendicular-area
+    pdf 1/(pi R^2)."""
     lights = scene.lights
     _, rb = bounding_sphere(scene)
     dt = n.x.dtype
@@ -211,6 +225,8 @@ def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
             pk = jnp.maximum(cos, 0.0) * sampling.INV_PI
         elif kind == LIGHT_SPHERE:
             pk = jnp.abs(cos) * (0.5 * sampling.INV_PI)
+        elif kind == LIGHT_POINT:
+            pk = jnp.asarray(0.25 / jnp.pi, dt)
         else:
             pk = jnp.ones((), dt) / (jnp.pi * rb * rb)
         pdf = jnp.where(light == k, pk, pdf)
@@ -220,7 +236,7 @@ def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
 def light_point_pdf(scene: Scene, light, w_inf: Vec3):
     """Light-side pdf of y_0 (selection included): p_sel / area for area lights; for the
     sky and background p_sel times the direction pdf of w_inf (pointing to the sky); p_sel
-    for the sun."""
+    for the sun and point lights (delta: remapped to 1 times the selection)."""
     lights = scene.lights
     sel = selection_pdf(scene)
     dt = w_inf.x.dtype
@@ -241,6 +257,21 @@ def light_point_pdf(scene: Scene, light, w_inf: Vec3):
     return jax.lax.stop_gradient(pdf)
 
 
+def emitted_toward(scene: Scene, light, w: Vec3, n: Vec3):
+    """What y_0 sends towards direction w in light tracing's s = 1 technique, per unit
+    projected area and solid angle as the estimator divides it: Le |cos(n, w)| for area
+    lights (Le on the emitting side), I for point lights. [C]"""
+    lights = scene.lights
+    C = lights.radiance.shape[-1]
+    dt = n.x.dtype
+    Le, _ = emitted_surface(scene, light, w, n, jnp.ones((), dt))
+    out = Le * jnp.abs(vec.dot(n, w))
+    for k, kind in enumerate(lights.kind):
+        if kind == LIGHT_POINT:
+            out = jnp.where(light == k, lights.radiance[k], out)
+    return out * jnp.ones((C,), dt)
+
+
 def sample_emission(scene: Scene, u) -> Emission:
     """Sample y_0 and the first direction of a light subpath. u: 5 uniforms."""
     lights = scene.lights
@@ -259,7 +290,14 @@ def sample_emission(scene: Scene, u) -> Emission:
     dx, dy = sampling.concentric_disk(u[3], u[4])
     for k, kind in enumerate(lights.kind):
         Le = lights.radiance[k]
-        if kind in (LIGHT_RECT, LIGHT_SPHERE):
+        if kind == LIGHT_POINT:  # y_0 the point, the direction uniform on the sphere
+            p = vec.from_array(lights.position[k])
+            d = sampling.uniform_sphere(u[1], u[2])
+            pdf_dir = jnp.asarray(0.25 / jnp.pi, dt)
+            e = Emission(p, d, p, d, jnp.ones((C,), dt) / psel, Le / (psel * pdf_dir), psel,
+                         pdf_dir, jnp.asarray(k, jnp.int32), jnp.zeros((), bool),
+                         jnp.ones((), bool))
+        elif kind in (LIGHT_RECT, LIGHT_SPHERE):
             if kind == LIGHT_RECT:
                 p0, e1, e2, n, area = rect_frame(scene, lights.shape[k])
                 p = p0 + e1 * u[1] + e2 * u[2]

@@ -30,9 +30,11 @@ LIGHT_SPHERE = 1  # spherical area light, emits on both sides of its surface
 LIGHT_SUN = 2  # directional (delta) light, irradiance on a plane normal to it
 LIGHT_SKY = 3  # constant radiance from the upper hemisphere (directions with y > 0)
 LIGHT_BACKGROUND = 4  # constant radiance from every direction (SmallVCM's background light)
+LIGHT_POINT = 5  # isotropic point light (delta position), intensity I in W/sr
+DELTA_LIGHTS = (LIGHT_SUN, LIGHT_POINT)  # no emitter hit: y_0 cannot be reached by a path
 
 LIGHT_NAMES = {LIGHT_RECT: "rect", LIGHT_SPHERE: "sphere", LIGHT_SUN: "sun", LIGHT_SKY: "sky",
-               LIGHT_BACKGROUND: "background"}
+               LIGHT_BACKGROUND: "background", LIGHT_POINT: "point"}
 MAT_NAMES = {MAT_DIFFUSE: "diffuse", MAT_DIELECTRIC: "dielectric", MAT_MIRROR: "mirror",
              MAT_GLOSSY: "glossy"}
 PHASE_NAMES = {PHASE_ISOTROPIC: "isotropic", PHASE_HG: "hg", PHASE_WATER: "water"}
@@ -129,9 +131,11 @@ class Water(eqx.Module):
 class Lights(eqx.Module):
     kind: tuple[int, ...] = eqx.field(static=True)  # [L] LIGHT_*
     shape: tuple[int, ...] = eqx.field(static=True)  # [L] rect / sphere index, -1 otherwise
-    radiance: Float[Array, "L C"]  # Le for area lights and sky; irradiance E for the sun
+    radiance: Float[Array, "L C"]  # Le for area lights and sky; irradiance E for the sun;
+    #                                intensity I (W/sr) for point lights
     direction: Float[Array, "L 3"]  # sun: unit direction light travels; zeros otherwise
     power_weight: Float[Array, "L"]  # unnormalised light-selection weights (see _lights)
+    position: Float[Array, "L 3"]  # point lights: the position; zeros otherwise
 
     @property
     def count(self) -> int:

@@ -35,7 +35,8 @@ from ._fit import WATER_FIELDS
 from ._io import FORMATS, check_writable, export_scene
 from ._io._scene_sections import MAX_PIXELS
 from ._render import ALL_NONFINITE
-from ._scene import LIGHT_NAMES, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES, PHASE_NAMES
+from ._scene import (LIGHT_NAMES, LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES,
+                     PHASE_NAMES)
 from ._spectral import WaterModel
 from ._spectral._scene import MAX_WAVELENGTHS
 
@@ -353,7 +354,8 @@ def describe(scene) -> str:
     rad = np.asarray(L.radiance, np.float64)
     for j, (k, sh) in enumerate(zip(L.kind, L.shape)):
         name = LIGHT_NAMES.get(k, str(k))
-        what = "irradiance" if k == LIGHT_SUN else "radiance"
+        what = ("irradiance" if k == LIGHT_SUN else "intensity" if k == LIGHT_POINT
+                else "radiance")
         extra = ""
         if k == LIGHT_RECT:
             p0 = np.asarray(scene.rects.p0[sh], np.float64)
@@ -367,6 +369,8 @@ def describe(scene) -> str:
                      f"{float(scene.spheres.radius[sh]):.4g}")
         elif k == LIGHT_SUN:
             extra = f", direction {_fmt_vec(L.direction[j])}"
+        elif k == LIGHT_POINT:
+            extra = f", position {_fmt_vec(L.position[j])}"
         lines.append(f"  light {j}: {name}, {what} {_fmt_vec(rad[j])}{extra}")
     b = np.asarray(scene.bounds, np.float64)
     lines.append(f"bounds:    {_fmt_vec(b[0])} .. {_fmt_vec(b[1])}")

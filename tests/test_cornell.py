@@ -17,13 +17,14 @@ import pytest
 
 import jaxvcm
 from jaxvcm import RenderConfig
-from jaxvcm._scene import LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SUN, MAT_DIELECTRIC, MAT_GLOSSY
+from jaxvcm._scene import (LIGHT_BACKGROUND, LIGHT_POINT, LIGHT_RECT, LIGHT_SUN, MAT_DIELECTRIC,
+                           MAT_GLOSSY)
 
 from . import _analytic as A
 
 SCENES = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes")
 VARIANTS = {"cornell": LIGHT_RECT, "cornell_spheres": LIGHT_RECT, "cornell_sun": LIGHT_SUN,
-            "cornell_background": LIGHT_BACKGROUND}
+            "cornell_background": LIGHT_BACKGROUND, "cornell_point": LIGHT_POINT}
 
 
 def _load(name, size=16):
@@ -46,6 +47,10 @@ def test_cornell_files_carry_smallvcm_numbers(name):
     np.testing.assert_allclose(b[:, 0], [-1.27029, 1.28975], atol=1e-5)
     np.testing.assert_allclose(b[:, 2], [-1.28002, 1.28002], atol=1e-5)
     assert b[1, 1] == pytest.approx(1.30455, abs=1e-5)
+    if VARIANTS[name] == LIGHT_POINT:  # 70 W / (4 pi) at (0, -0.5, 1)
+        np.testing.assert_allclose(np.asarray(sc.lights.radiance[0]), 70 / (4 * np.pi),
+                                   rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(sc.lights.position[0]), [0.0, -0.5, 1.0])
     if VARIANTS[name] == LIGHT_RECT:  # the light box: 25.0333 over 0.5 x 0.5 m
         np.testing.assert_allclose(np.asarray(sc.lights.radiance[0]), 25.03329895614464,
                                    rtol=1e-6)

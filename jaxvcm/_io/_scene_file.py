@@ -22,6 +22,7 @@ Schema (metres, y up; "spectrum" = a number or a list of C numbers):
   [[lights]] type = "sphere": center, radius, radiance                (emits both ways)
   [[lights]] type = "sun":    direction (the way light travels), irradiance
   [[lights]] type = "sky":    radiance                   (directions with y > 0 only)
+  [[lights]] type = "point":  position, intensity (W/sr)  (isotropic, delta position)
   [[lights]] type = "background": radiance               (every direction; SmallVCM's
                                                           background; at most one of
                                                           sky and background)
@@ -61,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._scene import (
-    LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, Camera, Lights, Materials, Rects, Scene, Spheres, Water,
+    LIGHT_BACKGROUND, LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, Camera, Lights, Materials, Rects, Scene, Spheres, Water,
 )
 from ._scene_sections import (
     _Parts, parse_camera, parse_lights, parse_materials, parse_shapes, parse_water,
@@ -125,8 +126,11 @@ def _check_finite(ctx: _Ctx, scene: Scene) -> Scene:
 
 
 def _bounds(pos: np.ndarray, parts: _Parts, water: dict) -> np.ndarray:
-    """[2, 3] box around the camera, every shape and the water volume."""
+    """[2, 3] box around the camera, every shape, the point lights and the water volume."""
     pts = [pos[None]]
+    for k, q in zip(parts.l_kind, parts.l_pos):
+        if k == LIGHT_POINT:
+            pts.append(np.asarray(q, float)[None])
     for p0, e1, e2 in zip(parts.rect_p0, parts.rect_e1, parts.rect_e2):
         pts.append(np.array([p0, p0 + e1, p0 + e2, p0 + e1 + e2]))
     for cc, r in zip(parts.sph_c, parts.sph_r):
@@ -156,6 +160,8 @@ def _light_power(parts: _Parts, bounds: np.ndarray) -> list:
             power.append(rad.mean() * math.pi * rb * rb)
         elif k == LIGHT_BACKGROUND:
             power.append(rad.mean() * math.pi * 4 * math.pi * rb * rb)
+        elif k == LIGHT_POINT:
+            power.append(rad.mean() * 4 * math.pi)
         else:
             power.append(rad.mean() * math.pi * math.pi * rb * rb)
     return power
@@ -183,5 +189,5 @@ def _to_scene(cam: dict, p: _Parts, water: dict, bounds, power, name: str, dtype
                 A(wv[:, 3]), A(w["fp"]), A(w["floor"]), A(w["sig_a"]), A(w["sig_s"]), A(w["g"]),
                 A(w["b"]), A(w["ior"]), w["mat"])
     lights = Lights(tuple(p.l_kind), tuple(p.l_shape), A(np.array(p.l_rad)), arr3(p.l_dir),
-                    A(power))
+                    A(power), arr3(p.l_pos))
     return Scene(camera, materials, rects, spheres, wat, lights, A(bounds), name)

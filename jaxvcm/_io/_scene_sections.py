@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from .._scene import (
-    LIGHT_BACKGROUND, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE,
+    LIGHT_BACKGROUND, LIGHT_POINT, LIGHT_RECT, LIGHT_SKY, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, MAT_DIFFUSE,
     MAT_GLOSSY, MAT_MIRROR,
     PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER,
 )
@@ -69,6 +69,7 @@ class _Parts:
     l_shape: list = dataclasses.field(default_factory=list)
     l_rad: list = dataclasses.field(default_factory=list)
     l_dir: list = dataclasses.field(default_factory=list)
+    l_pos: list = dataclasses.field(default_factory=list)
     basin: tuple | None = None  # (min, max) of the last basin
     sizes: list = dataclasses.field(default_factory=list)  # (field, smallest side or radius)
 
@@ -299,6 +300,13 @@ def _sky_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     return LIGHT_SKY, -1, rad, np.zeros(3)
 
 
+def _point_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
+    ctx.table(l, {"type", "position", "intensity"}, {"position", "intensity"}, f)
+    pos = ctx.vec(l["position"], f + ".position", rng=COORD)
+    rad = ctx.spectrum(l["intensity"], f + ".intensity", RADIANCE, positive=True)
+    return LIGHT_POINT, -1, rad, pos
+
+
 def _background_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
     rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
@@ -306,7 +314,7 @@ def _background_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
 
 
 _LIGHTS = {"rect": _rect_light, "sphere": _sphere_light, "sun": _sun_light, "sky": _sky_light,
-           "background": _background_light}
+           "background": _background_light, "point": _point_light}
 
 
 def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
@@ -324,7 +332,9 @@ def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
         parts.l_kind.append(k)
         parts.l_shape.append(shape)
         parts.l_rad.append(rad)
-        parts.l_dir.append(dvec)
+        point = k == LIGHT_POINT  # its vector is the position, not a direction
+        parts.l_dir.append(np.zeros(3) if point else dvec)
+        parts.l_pos.append(dvec if point else np.zeros(3))
 
 
 # ---------------------------------------------------------------- [water]
