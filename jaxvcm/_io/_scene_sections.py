@@ -10,6 +10,7 @@ surface's dielectric material.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -294,10 +295,11 @@ def _sun_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     return LIGHT_SUN, -1, rad, dvec
 
 
-def _sky_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
+def _constant_light(kind: int, ctx: _Ctx, l: dict, f: str, parts: _Parts):
+    """Sky (upper hemisphere) and background (every direction): a constant radiance."""
     ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
     rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
-    return LIGHT_SKY, -1, rad, np.zeros(3)
+    return kind, -1, rad, np.zeros(3)
 
 
 def _point_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
@@ -307,14 +309,10 @@ def _point_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     return LIGHT_POINT, -1, rad, pos
 
 
-def _background_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
-    ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
-    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
-    return LIGHT_BACKGROUND, -1, rad, np.zeros(3)
-
-
-_LIGHTS = {"rect": _rect_light, "sphere": _sphere_light, "sun": _sun_light, "sky": _sky_light,
-           "background": _background_light, "point": _point_light}
+_LIGHTS = {"rect": _rect_light, "sphere": _sphere_light, "sun": _sun_light,
+           "sky": functools.partial(_constant_light, LIGHT_SKY),
+           "background": functools.partial(_constant_light, LIGHT_BACKGROUND),
+           "point": _point_light}
 
 
 def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
