@@ -45,7 +45,8 @@ class Technique(NamedTuple):
     kind "connection": the (s, t) technique (s light vertices, t camera vertices;
          s = 0 emitter hits, s = 1 next-event estimation, t = 1 light tracing);
     kind "merge": vertex merging at camera vertex z_{t-1} (bpm, vcm), every path length
-         (s = 0: any number of light vertices);
+         (s = 0: any number of light vertices), or with `technique_images(merge_lengths=True)`
+         of photon y_{s-1} only (s >= 2: a path of s + t - 2 segments);
     kind "gather": ppm's photon gather (s = t = 0).
     """
 
@@ -98,6 +99,7 @@ class PassState(eqx.Module):
     cends: Any = None  # `_subpath.PathEnds`: records with their start vertex
     lends: Any = None
     parts: Any = None  # (light, camera) MIS partial sums, or None
+    merge_lengths: bool = eqx.field(static=True, default=False)  # merges split by photon
     labels: tuple[Technique, ...] = eqx.field(static=True, default=())
     values: tuple = ()  # per label: [N, C] per camera path, or a (pixel, value) splat
     overflow: Any = None  # merging gather ran out of candidate room
@@ -287,9 +289,14 @@ def photon_gather(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 def vertex_merging(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     """bpm, vcm: at every camera vertex."""
     vm, overflow, need = merge.vertex_merging(scene, cfg, st.cends, st.lends, st.emission,
-                                              st.radius, st.parts)
-    st = _add(st, {Technique("merge", 0, j + 2): vm[j]  # merging at camera vertex z_{j+1}
-                   for j in range(vm.shape[0])})
+                                              st.radius, st.parts, st.merge_lengths)
+    if st.merge_lengths:  # photon y_{i+1} (s = i + 2 light vertices) at z_{j+1} (t = j + 2)
+        st = _add(st, {Technique("merge", i + 2, j + 2): vm[j, :, i]
+                       for j in range(vm.shape[0]) for i in range(vm.shape[2])
+                       if i + j + 2 <= cfg.max_depth})
+    else:
+        st = _add(st, {Technique("merge", 0, j + 2): vm[j]  # merging at camera vertex z_{j+1}
+                       for j in range(vm.shape[0])})
     return dataclasses.replace(st, overflow=overflow, need=need)
 
 
@@ -346,13 +353,16 @@ def pass_stages(cfg: RenderConfig) -> list[tuple[str, Stage]]:
     return stages
 
 
-def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
-                     ) -> tuple[TechniqueImages, PassStats]:
+def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0,
+                     merge_lengths: bool = False) -> tuple[TechniqueImages, PassStats]:
     """Every technique's weighted image of one pass (`Technique` labels), and its stats.
-    `pass_index` drives the merging radius schedule."""
+    `pass_index` drives the merging radius schedule. `merge_lengths` (static): bpm / vcm's
+    merges split by path length as well (label ("merge", s, t): photon y_{s-1} merged at
+    z_{t-1}, a path of s + t - 2 segments) instead of one image per camera vertex (s = 0);
+    the gather's sums are then max_depth - 1 times as wide."""
     if cfg.chunks != 1:
         raise ValueError(f"config.chunks: technique images need one chunk, got {cfg.chunks}")
-    st = PassState(key=key, pass_index=pass_index)
+    st = PassState(key=key, pass_index=pass_index, merge_lengths=merge_lengths)
     for _, stage in pass_stages(cfg):
         st = stage(scene, cfg, st)
     return st.images, st.stats

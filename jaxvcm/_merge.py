@@ -166,14 +166,16 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
 
 # ---------------------------------------------------------------- bpm / vcm: merging with MIS
 def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds, e, radius,
-                   parts=None):
+                   parts=None, by_photon: bool = False):
     """Merging at every non-delta camera vertex z_j (j = 1..D-1) with every photon y_i
     (i >= 1) within `radius`, like with like, weighted by the explicit-sum MIS over all
     connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
     `parts`: the subpaths' (light, camera) MIS partials (`_mis_partial`) or carried records
     (`_mis_recursive`, `_path.mis_join`): each candidate then gathers O(1) entries; None: each assembles its full path (`_path.weight`).
-    Returns ([N, C] per camera lane, overflow, longest candidate list)."""
+    Returns ([D-1, N, C]: per gather vertex z_j and camera lane, overflow, longest candidate
+    list); `by_photon` (static, for per-technique images): [D-1, N, I, C], split by the
+    photon's index i = 1..I as well (the gather's sums D-1 times as wide)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
@@ -235,13 +237,22 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
                                          sg(A_s1), sg(B_s1), sg(B_s2), e.delta[ll],
                                          e.infinite[ll], sg(log_n), merge=True,
                                          lanes=((ll,), (lc,)))
-        return jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
+        val = jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
+        if by_photon:  # [B, D-1, C]: the value in the row of its photon y_i
+            rows = jnp.asarray(li, jnp.int32)
+            val = jnp.where((ip[:, None] == rows[None, :])[:, :, None], val[:, None, :], 0.0)
+        return val
 
     total, overflow, need = hashgrid.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
                                                   _search_radius(radius),
                                                   max_candidates=cfg.merge_capacity,
                                                   return_need=True)
     zmed = flat(cam.medium, ci)
+    if by_photon:  # the same arithmetic per photon row
+        est = (flat(cam.beta, ci)[:, None, :] * total
+               / (kernel_size(zmed, radius) * N)[:, None, None])
+        est = jnp.where(zvalid[:, None, None], est, 0.0)
+        return est.reshape((len(ci), N) + total.shape[1:]), overflow, need
     est = flat(cam.beta, ci) * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(zvalid[:, None], est, 0.0).reshape(len(ci), N, -1)
     return est, overflow, need

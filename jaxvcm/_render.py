@@ -19,7 +19,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 from . import _devices, _hosts, _io, _memory, _warm
 from ._version import __version__
 from ._config import RenderConfig
-from ._integrator import integrate
+from ._integrator import Technique, TechniqueImages, integrate, technique_images
 from ._scene import Scene
 
 
@@ -113,14 +113,16 @@ def check_budget(passes, time):
 
 
 def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
-                snapshot_every=None, progress=True, exposure=0.0, total=None, start=None):
+                snapshot_every=None, progress=True, exposure=0.0, total=None, start=None,
+                to_layers=None):
     """Average independent passes until `passes` are done or `time` seconds have elapsed (at
     least one pass). `run_pass(i) -> (estimates, nonfinite count)`: the estimate ndarray of
     pass i, a list of them (passes i, i + 1, ...), or the count of passes it added to sums
     kept on the devices, whose float64 total `total()` returns (`_devices.DeviceSum`).
     `start = (passes done, their float64 sum)` resumes an earlier render. `to_image(mean)`
     turns the running mean into the image written; `meta(passes, seconds, nonfinite,
-    snapshot)` its JSON record, to which "warnings" (one line each) is added. With `out`,
+    snapshot)` its JSON record, to which "warnings" (one line each) is added;
+    `to_layers(mean)` (optional) the EXR's extra layers {name: image}. With `out`,
     writes EXR + PNG + JSON at the end, and with `snapshot_every` (seconds) atomic snapshots
     along the way, so a killed render leaves its last snapshot intact. The first pass
     includes the compilation: the progress line says "compiling" until it is done, and the
@@ -171,9 +173,11 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
                     and now - last_snap >= snapshot_every)
             done, snap = (bool(x) for x in _hosts.agree((done, snap)))
             if snap:
-                img = to_image(mean()).astype(np.float32)  # a collective: every process
+                m = mean()  # a collective: every process
+                img = to_image(m).astype(np.float32)
                 if out:
-                    _io.write_outputs(out, img, record(i, now - t0, img, True), exposure)
+                    _io.write_outputs(out, img, record(i, now - t0, img, True), exposure,
+                                      None if to_layers is None else to_layers(m))
                 last_snap = now
             if done:
                 break
@@ -186,7 +190,8 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
 
         warnings.warn("; ".join(render_warnings(img, nonfinite)))
     if out:
-        _io.write_outputs(out, img, record(i, _time.perf_counter() - t0, img, False), exposure)
+        _io.write_outputs(out, img, record(i, _time.perf_counter() - t0, img, False), exposure,
+                          None if to_layers is None else to_layers(m))
     return m, i, nonfinite
 
 
@@ -212,7 +217,8 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
            time: float | None = None, seed: int = 0, snapshot_every: float | None = None,
            out: str | None = None, config: RenderConfig | None = None, progress: bool = True,
            exposure: float = 0.0, scene_path: str | None = None, devices=None,
-           resume: bool = False, memory: int | str | None = None) -> np.ndarray:
+           resume: bool = False, memory: int | str | None = None,
+           techniques: bool = False) -> np.ndarray:
     """Progressive render (`progressive`) of `render_pass` with keys `pass_key(seed, i)`:
     the mean of the passes as float32 [H, W, C]; with `out`, EXR + PNG + JSON (and
     snapshots every `snapshot_every` seconds). `devices` (None: every local device; a
@@ -226,7 +232,9 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     float32 rounding of the stored mean. `memory` (bytes, or '4G'): trace each pass in as
     many chunks as keep its working memory under it (`_memory.chunks_for_memory`, which
     sets `config.chunks`); None: the device's memory where it reports one
-    (`_memory.auto_chunks`; on the CPU one chunk)."""
+    (`_memory.auto_chunks`; on the CPU one chunk). `techniques`: `out`'s EXR also holds
+    every technique's image as a layer (`technique_layer` names them; their sum is the
+    image), from `technique_images(merge_lengths=True)` on one device in one chunk."""
     check_budget(passes, time)
     local = _devices.resolve_devices(devices)
     devs = _devices.mesh_devices(local)
@@ -234,6 +242,9 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     if config.algorithm != algorithm:
         raise ValueError(f"algorithm: {algorithm!r} disagrees with config.algorithm "
                          f"{config.algorithm!r}")
+    if techniques:
+        return _render_techniques(scene, config, passes, time, seed, snapshot_every, out,
+                                  progress, exposure, scene_path, devices, resume, memory)
     if memory is not None:
         budget = _memory.parse_bytes(memory) if isinstance(memory, str) else int(memory)
         config = dataclasses.replace(config, chunks=_memory.chunks_for_memory(scene, config,
@@ -275,6 +286,64 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
                              exposure=exposure, total=None if dsum is None else dsum.total,
                              start=start)
     return mean.astype(np.float32)
+
+
+def technique_layer(label: Technique) -> str:
+    """The EXR layer of a technique, keyed by path length k (segments) and technique:
+    "k3_s1_t3" the connection of s light and t camera vertices (k = s + t - 1; s = 0 emitter
+    hits, s = 1 next-event estimation, t = 1 light tracing), "k3_merge_s2_t3" photon
+    y_{s-1} merged at z_{t-1} (k = s + t - 2), "merge_t3" every merge at z_{t-1} (s = 0),
+    "gather" ppm's photon gather."""
+    kind, s, t = label
+    if kind == "connection":
+        return f"k{s + t - 1}_s{s}_t{t}"
+    if kind == "merge":
+        return f"k{s + t - 2}_merge_s{s}_t{t}" if s else f"merge_t{t}"
+    return kind
+
+
+@functools.partial(jax.jit, static_argnums=(2,))
+def _technique_pass(scene, key, config, pass_index=0):
+    """Every technique's image of one pass (merges split by path length), non-finite
+    values zeroed and counted."""
+    tech, stats = technique_images(scene, key, config, pass_index, merge_lengths=True)
+    finite = jnp.isfinite(tech.images)
+    return (TechniqueImages(tech.labels, jnp.where(finite, tech.images, 0.0)),
+            (jnp.sum(~finite).astype(jnp.int32), stats))
+
+
+def _render_techniques(scene, config, passes, time, seed, snapshot_every, out, progress,
+                       exposure, scene_path, devices, resume, memory):
+    """`render(techniques=True)`: `progressive` over the stacked technique images."""
+    if devices is not None and len(_devices.resolve_devices(devices)) > 1:
+        raise ValueError("techniques: per-technique images run on one device (devices=1)")
+    if _hosts.count() > 1:
+        raise ValueError("techniques: per-technique images run in one process")
+    if memory is not None:
+        raise ValueError("memory: not with techniques (per-technique images need one chunk)")
+    if resume:
+        raise ValueError("resume: not with techniques")
+    state = {"config": dataclasses.replace(config, chunks=1), "labels": ()}
+
+    def run_pass(i):
+        tech, (bad, _), state["config"] = with_retry(
+            _technique_pass, scene, pass_key(seed, i), state["config"], i,
+            lambda d: d[1].merge_overflow, lambda d: d[1].merge_candidates)
+        state["labels"] = tech.labels
+        return tech.images, bad
+
+    def to_layers(m):
+        return {technique_layer(lab): m[k] for k, lab in enumerate(state["labels"])}
+
+    def meta(n, seconds, nonfinite, snapshot):
+        return {**_meta(scene, scene_path, state["config"], n, seconds, seed, nonfinite,
+                        snapshot), "devices": 1, "processes": 1,
+                "techniques": [technique_layer(lab) for lab in state["labels"]]}
+
+    mean, _, _ = progressive(run_pass, lambda m: m.sum(axis=0), meta, passes=passes,
+                             time=time, out=out, snapshot_every=snapshot_every,
+                             progress=progress, exposure=exposure, to_layers=to_layers)
+    return mean.sum(axis=0).astype(np.float32)
 
 
 RESUME_KEYS = ("algorithm", "seed", "width", "height", "scene_name")

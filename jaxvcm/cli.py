@@ -161,6 +161,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="processes of a multi-process render (default: $JAX_NUM_PROCESSES)")
     r.add_argument("--process-id", type=_pos_int(lo=0, hi=4095), default=None, metavar="I",
                    help="this process's id, 0..P-1 (default: $JAX_PROCESS_ID)")
+    r.add_argument("--techniques", action="store_true",
+                   help="also write every technique's image as a layer of the EXR, keyed "
+                        "by path length k and technique (kK_sS_tT: the connection of s light "
+                        "and t camera vertices; kK_merge_sS_tT: photon y_(s-1) merged at "
+                        "z_(t-1)); their sum is the image; one device, one chunk")
     r.add_argument("--quiet", action="store_true", help="no progress line")
     r.add_argument("--spectral", action="store_true",
                    help="spectral mode (hero wavelengths, CIE XYZ film; jaxvcm.render_spectral): "
@@ -278,6 +283,15 @@ def _cmd_render(a) -> int:
     if a.radius is not None:
         cfg["radius"] = a.radius
     config = RenderConfig(**cfg)
+    if a.techniques:
+        for flag, v in (("--spectral", a.spectral or None), ("--resume", a.resume or None),
+                        ("--memory", a.memory), ("--coordinator", a.coordinator),
+                        ("--num-processes", a.num_processes), ("--process-id", a.process_id)):
+            if v is not None:
+                raise ValueError(f"{flag}: not available with --techniques (one device, "
+                                 f"one chunk, one process)")
+        if a.devices is not None and a.devices > 1:
+            raise ValueError("--devices: --techniques runs on one device")
     if a.spectral:
         return _cmd_render_spectral(a, out, config)
     if _hosts.requested(a.coordinator, a.num_processes, a.process_id):
@@ -297,7 +311,7 @@ def _cmd_render(a) -> int:
                           seed=a.seed, snapshot_every=a.snapshot_every, out=out,
                           exposure=a.exposure, scene_path=a.scene, config=config,
                           progress=not a.quiet, devices=a.devices, resume=a.resume,
-                          memory=a.memory)
+                          memory=a.memory, techniques=a.techniques)
     except KeyboardInterrupt:
         snap = " (last snapshot: " + out + ")" if a.snapshot_every and os.path.exists(out) else ""
         print(f"{PROG}: interrupted{snap}", file=sys.stderr, flush=True)

@@ -14,6 +14,7 @@ from ._images import read_record as read_record
 from ._images import png_bytes as png_bytes
 from ._images import prefetch_imports as prefetch_imports
 from ._images import read_exr as read_exr
+from ._images import read_exr_layers as read_exr_layers
 from ._images import recover_outputs as recover_outputs
 from ._images import to_srgb8 as to_srgb8
 from ._images import write_exr as write_exr

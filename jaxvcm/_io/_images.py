@@ -170,13 +170,28 @@ def _check_image(image) -> np.ndarray:
     return a
 
 
-def _channels(a: np.ndarray) -> dict:
+def _channels(a: np.ndarray, layer: str = "") -> dict:
     C = a.shape[2]
-    if C == 3:
+    pre = layer + "." if layer else ""
+    if C == 3 and not layer:
         return {"RGB": np.ascontiguousarray(a)}
+    if C == 3:
+        return {pre + k: np.ascontiguousarray(a[..., i]) for i, k in enumerate("RGB")}
     if C == 1:
-        return {"Y": np.ascontiguousarray(a[..., 0])}
-    return {f"C{c}": np.ascontiguousarray(a[..., c]) for c in range(C)}
+        return {pre + "Y": np.ascontiguousarray(a[..., 0])}
+    return {f"{pre}C{c}": np.ascontiguousarray(a[..., c]) for c in range(C)}
+
+
+def _layered(a: np.ndarray, layers: dict | None) -> dict:
+    """The image's channels, then each layer's as LAYER.R, LAYER.G, LAYER.B (EXR's layer
+    convention), same shape as the image."""
+    ch = _channels(a)
+    for name, img in (layers or {}).items():
+        la = _check_image(img)
+        if la.shape != a.shape:
+            raise ValueError(f"layers[{name!r}]: shape {la.shape}, the image's is {a.shape}")
+        ch.update(_channels(la, name))
+    return ch
 
 
 def _exr_header(header: dict | None) -> dict:
@@ -282,8 +297,10 @@ def _set_paths(out_path: str) -> tuple[str, str, str]:
     return out_path, stem + ".png", stem + ".json"
 
 
-def write_outputs(out_path: str, image, meta: dict, exposure: float = 0.0) -> None:
-    """Write `out_path` (.exr, linear float32), the PNG preview (`.png`, image * 2**exposure,
+def write_outputs(out_path: str, image, meta: dict, exposure: float = 0.0,
+                  layers: dict | None = None) -> None:
+    """Write `out_path` (.exr, linear float32; `layers` {name: image} as extra EXR layers
+    beside the image's channels), the PNG preview (`.png`, image * 2**exposure,
     sRGB, 8-bit) and the JSON sidecar (`.json`, `meta` plus "exposure" and "files": the
     SHA-256 of the EXR and the PNG) next to it. The directory must exist.
 
@@ -298,7 +315,7 @@ def write_outputs(out_path: str, image, meta: dict, exposure: float = 0.0) -> No
     png = png_bytes(a, exposure)
     meta = {**meta, "exposure": float(exposure)}
     with atomic_paths([p_exr, p_png, p_json]) as (t_exr, t_png, t_json):
-        OpenEXR.File(_exr_header({META_ATTR: _json_text(meta)}), _channels(a)).write(t_exr)
+        OpenEXR.File(_exr_header({META_ATTR: _json_text(meta)}), _layered(a, layers)).write(t_exr)
         _write_bytes(t_png, png)
         files = {"exr_sha256": _sha256(t_exr), "png_sha256": hashlib.sha256(png).hexdigest()}
         _write_bytes(t_json, _json_text({**meta, "files": files}).encode("utf-8"))
@@ -407,3 +424,29 @@ def read_exr(path: str) -> np.ndarray:
     else:
         raise ValueError(f"{path}: no R, G, B or Y channels (found: {', '.join(sorted(ch))})")
     return np.stack([np.asarray(p, dtype=np.float32) for p in planes], axis=-1)
+
+
+def read_exr_layers(path: str) -> dict[str, np.ndarray]:
+    """The layers of an EXR written with `write_outputs(layers=...)` (channels LAYER.R,
+    LAYER.G, LAYER.B, or LAYER.Y), as {LAYER: float32 [H, W, 3]}, in file order; the image
+    itself is `read_exr`."""
+    import OpenEXR
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: file not found")
+    ch = OpenEXR.File(path, separate_channels=True).channels()
+    names: dict[str, None] = {}
+    for k in ch:
+        if "." in k:
+            names[k.rsplit(".", 1)[0]] = None
+    out = {}
+    for name in names:
+        if all(f"{name}.{c}" in ch for c in "RGB"):
+            planes = [ch[f"{name}.{c}"].pixels for c in "RGB"]
+        elif f"{name}.Y" in ch:
+            planes = [ch[f"{name}.Y"].pixels] * 3
+        else:
+            continue
+        out[name] = np.stack([np.asarray(p, dtype=np.float32) for p in planes], axis=-1)
+    return out
