@@ -85,10 +85,12 @@ def _lobe_probs(albedo, glossy):
 
 
 def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance=True,
-                glossy=None, exponent=None) -> BSDFSample:
+                glossy=None, exponent=None, front=None) -> BSDFSample:
     """Sample wi for material `kind` (a traced int selecting among the static kinds).
     `radiance`: the transport mode, a static bool or a traced per-lane flag. `glossy`,
-    `exponent`: the glossy material's k_s [C] and n (None: no glossy material)."""
+    `exponent`: the glossy material's k_s [C] and n (None: no glossy material). `front`:
+    True where the material is one-sided: seen from behind (wo against n) it is black, the
+    sample's weight 0 (None: no one-sided material)."""
     cos_o = vec.dot(wo, n)
     side = jnp.where(cos_o >= 0, 1.0, -1.0).astype(n.x.dtype)
     ns = n * side  # normal on wo's side
@@ -153,17 +155,23 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance=T
         weight = jnp.where(is_g, w_gl, weight)
         pdf = jnp.where(is_g, pdf_gl, pdf)
         delta = delta & ~is_g
+    if front is not None:
+        weight = jnp.where(front & (cos_o <= 0), 0.0, weight)
     return BSDFSample(wi, weight, pdf, delta, transmit, disperse)
 
 
-def eval_bsdf(kind, albedo, wo: Vec3, wi: Vec3, n: Vec3, glossy=None, exponent=None
-              ) -> tuple[Array, Array]:
+def eval_bsdf(kind, albedo, wo: Vec3, wi: Vec3, n: Vec3, glossy=None, exponent=None,
+              front=None) -> tuple[Array, Array]:
     """f(wo, wi) |cos(wi, n)| and the solid-angle pdf of sampling wi; zero for delta lobes.
     Lambertian and glossy surfaces are two-sided: wo and wi must lie on the same side.
-    `glossy`, `exponent`: the glossy material's k_s [C] and n (None: no glossy material)."""
+    `glossy`, `exponent`: the glossy material's k_s [C] and n (None: no glossy material).
+    `front`: True where the material is one-sided (then wo must lie on n's side as well;
+    None: no one-sided material)."""
     cos_o = vec.dot(wo, n)
     cos_i = vec.dot(wi, n)
     same = cos_o * cos_i > 0
+    if front is not None:
+        same = same & (~front | (cos_o > 0))
     is_d = (kind == MAT_DIFFUSE) & same
     f = jnp.where(is_d, albedo * (sampling.INV_PI * jnp.abs(cos_i)), 0.0)
     pdf = jnp.where(is_d, sampling.INV_PI * jnp.abs(cos_i), 0.0)

@@ -68,6 +68,11 @@ class Materials(eqx.Module):
     # for the other kinds); `albedo` is then the Lambertian part k_d
     glossy: Float[Array, "M C"]
     exponent: Float[Array, "M"]
+    # [M] or (): True where the material is one-sided (a shape's `two_sided = false`): it
+    # scatters only on the side its shape's normal faces and is black from behind, like
+    # SmallVCM's and Mitsuba's diffuse; () or all False: every material two-sided (the
+    # check is then not in the compiled program)
+    one_sided: tuple[bool, ...] = eqx.field(static=True, default=())
 
     @property
     def dispersive(self) -> bool:

@@ -100,6 +100,14 @@ def _glossy(scene: Scene, mat):
     return scene.materials.glossy[mat], scene.materials.exponent[mat]
 
 
+def _front(scene: Scene, mat):
+    """True where material `mat` is one-sided, or None if none is (the check is then not
+    in the compiled program)."""
+    if not any(scene.materials.one_sided):
+        return None
+    return jnp.asarray(scene.materials.one_sided, bool)[mat]
+
+
 def dist_pdf(water: Water, seg_water, target_medium, d):
     """Distance-sampling factor of a segment of length d: p_scatter(d) if it ends in a medium
     vertex, P_pass(d) if it ends on a surface; 1 outside the water."""
@@ -124,7 +132,8 @@ def bsdf_pdf(scene: Scene, kind, mat, medium_d: Vec3, wo: Vec3, wi: Vec3, n: Vec
     away from it), for the non-delta kinds; delta kinds return 0 (callers remap)."""
     albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
     _, pdf_s = materials.eval_bsdf(kind, albedo, wo, wi, n,
-                                   *_glossy(scene, jnp.maximum(mat, 0)))
+                                   *_glossy(scene, jnp.maximum(mat, 0)),
+                                   front=_front(scene, jnp.maximum(mat, 0)))
     if scene.water.enabled:
         # phase functions: mu between the propagation direction (-wo) and wi
         ph = media.phase_eval(scene.water.phase_kind, scene.water, vec.dot(-wo, wi))
@@ -137,7 +146,8 @@ def eval_f(scene: Scene, kind, mat, wo: Vec3, wi: Vec3, n: Vec3):
     function in the medium (sigma_s is already in the throughput). [C]"""
     C = scene.channels
     albedo = scene.materials.albedo[jnp.maximum(mat, 0)]
-    f, _ = materials.eval_bsdf(kind, albedo, wo, wi, n, *_glossy(scene, jnp.maximum(mat, 0)))
+    f, _ = materials.eval_bsdf(kind, albedo, wo, wi, n, *_glossy(scene, jnp.maximum(mat, 0)),
+                               front=_front(scene, jnp.maximum(mat, 0)))
     if scene.water.enabled:
         ph = media.phase_eval(scene.water.phase_kind, scene.water, vec.dot(-wo, wi))
         f = jnp.where(kind == KIND_MEDIUM, ph * jnp.ones((C,), ph.dtype), f)
@@ -213,7 +223,7 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     # ---- sample the continuation ----
     ks, n_exp = _glossy(scene, mat)
     bs = materials.sample_bsdf(kind, albedo, ior, wo, n, u[2], u[3], u[4], radiance=radiance,
-                               glossy=ks, exponent=n_exp)
+                               glossy=ks, exponent=n_exp, front=_front(scene, mat))
     if water.enabled:
         wi_ph, pdf_ph = media.phase_sample(water.phase_kind, water, s.d, u[2], u[3])
         wi = vec.where(scatter, wi_ph, bs.wi)

@@ -340,7 +340,9 @@ def describe(scene) -> str:
     sl = np.asarray(scene.spheres.light)
     lines.append(f"rects:     {scene.rects.count} ({int(np.sum(rl >= 0))} emissive)")
     lines.append(f"spheres:   {scene.spheres.count} ({int(np.sum(sl >= 0))} emissive)")
-    kinds = [MAT_NAMES.get(k, str(k)) for k in scene.materials.kind]
+    one = scene.materials.one_sided or (False,) * len(scene.materials.kind)
+    kinds = [MAT_NAMES.get(k, str(k)) + (" one-sided" if o else "")
+             for k, o in zip(scene.materials.kind, one)]
     lines.append(f"materials: {len(kinds)} ({', '.join(kinds)})")
     w = scene.water
     if w.enabled:

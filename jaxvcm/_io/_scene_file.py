@@ -2,6 +2,7 @@
 
 Schema (metres, y up; "spectrum" = a number or a list of C numbers):
 
+  base = "FILE.toml" | ["A.toml", "B.toml"]        # optional: shared parts (below)
   name = "pool"                                    # optional
   [camera]  position, target, up = [0,1,0], fov (vertical, degrees), width, height
   [materials.NAME]  type = "diffuse" | "mirror", albedo = spectrum
@@ -15,6 +16,9 @@ Schema (metres, y up; "spectrum" = a number or a list of C numbers):
                               floor_material, wall_material,
                               wall_tops = [top at x0, at x1, at z0, at z1]   (optional)
              (an open box: floor + 4 inward-facing walls, expanded into 5 rectangles)
+             every shape: two_sided = true (default: a diffuse or glossy shape scatters on
+             both faces) | false (only on the side its normal faces, black from behind,
+             like SmallVCM's and Mitsuba's diffuse; diffuse and glossy materials only)
   [water]   level, waves = [[A, kx, kz, phase], ...], sigma_a, sigma_s (1/m, spectra),
             phase = "isotropic" | "hg" | "water", g (hg), b = 0.835 (water), ior,
             footprint = [xmin, xmax, zmin, zmax], floor   (default: the basin's interior)
@@ -48,6 +52,14 @@ Valid ranges (anything outside is a one-line error naming the field; the constan
 Integers of any size and floats beyond float64 (inf, nan) are rejected the same way. The file
 must be UTF-8 TOML; keys that are not bare are shown quoted in messages.
 
+Variants share parts through `base`: the files it names (paths relative to this file, each
+possibly with its own `base`; at most MAX_BASES in a chain, no cycles) are read first, in
+order, and this file is laid over them: tables merge key by key, [[shapes]] and
+[[lights]] entries are appended after the bases' ones, any other value replaces the
+base's. A base need not be a whole scene (scenes/_base/ holds the Cornell box's parts).
+Messages name the file that was loaded and the merged document's field (shapes[i] counts
+the bases' shapes first).
+
 The file is read and its values checked in `_toml.py` (`SceneError`, `_Ctx`); each section
 is parsed in `_scene_sections.py`, and `scene_from_dict` below puts the parts together.
 """
@@ -69,14 +81,58 @@ from ._scene_sections import (
 )
 from ._toml import REL_SIZE, SceneError, _Ctx, read_toml
 
-__all__ = ["SceneError", "load_scene", "scene_from_dict"]
+__all__ = ["SceneError", "load_scene", "read_scene_doc", "scene_from_dict"]
 
 
 def load_scene(path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
                dtype=jnp.float32) -> Scene:
     """Load and validate a TOML scene file; raises `SceneError` with a one-line message."""
     src = os.fspath(path)
-    return scene_from_dict(read_toml(src), src, width=width, height=height, dtype=dtype)
+    return scene_from_dict(read_scene_doc(src), src, width=width, height=height, dtype=dtype)
+
+
+MAX_BASES = 8  # files in one chain of `base`s
+_APPENDED = ("shapes", "lights")  # arrays of tables that a file adds to its bases'
+
+
+def merge_docs(base: dict, over: dict) -> dict:
+    """`over` laid over `base`: tables merged key by key, the [[shapes]] / [[lights]]
+    arrays appended, any other value replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        b = out.get(k)
+        if isinstance(v, dict) and isinstance(b, dict):
+            out[k] = merge_docs(b, v)
+        elif k in _APPENDED and isinstance(v, list) and isinstance(b, list):
+            out[k] = b + v
+        else:
+            out[k] = v
+    return out
+
+
+def read_scene_doc(src: str, _chain: tuple = ()) -> dict:
+    """The TOML document at `src` with its `base` files merged under it (`merge_docs`)."""
+    doc = read_toml(src)
+    if "base" not in doc:
+        return doc
+    ctx = _Ctx(src)
+    bases = doc.pop("base")
+    names = [bases] if isinstance(bases, str) else bases
+    if not isinstance(names, list) or not names:
+        ctx.fail("base", "expected a file name or a non-empty list of file names")
+    chain = _chain + (os.path.realpath(src),)
+    merged: dict = {}
+    for i, name in enumerate(names):
+        f = "base" if isinstance(bases, str) else f"base[{i}]"
+        path = os.path.join(os.path.dirname(src), ctx.string(name, f))
+        if os.path.realpath(path) in chain:
+            ctx.fail(f, f"{name!r} is this file or one of its bases (a cycle)")
+        if len(chain) >= MAX_BASES:
+            ctx.fail(f, f"more than {MAX_BASES} files in a chain of bases")
+        if not os.path.isfile(path):
+            ctx.fail(f, f"file not found: {path}")
+        merged = merge_docs(merged, read_scene_doc(path, chain))
+    return merge_docs(merged, doc)
 
 
 def scene_from_dict(doc: dict, src: str = "<scene>", *, width=None, height=None,
@@ -179,8 +235,9 @@ def _to_scene(cam: dict, p: _Parts, water: dict, bounds, power, name: str, dtype
 
     camera = Camera(A(cam["pos"]), A(cam["fwd"]), A(cam["right"]), A(cam["up"]),
                     A(cam["tan_half_fov"]), cam["width"], cam["height"])
+    one_sided = tuple(p.mat_one_sided) if any(p.mat_one_sided) else ()
     materials = Materials(tuple(p.mat_kind), A(np.array(p.mat_albedo)), A(p.mat_ior),
-                          A(np.array(p.mat_glossy)), A(p.mat_exponent))
+                          A(np.array(p.mat_glossy)), A(p.mat_exponent), one_sided)
     rects = Rects(arr3(p.rect_p0), arr3(p.rect_e1), arr3(p.rect_e2), I(p.rect_mat),
                   I(p.rect_light))
     spheres = Spheres(arr3(p.sph_c), A(p.sph_r), I(p.sph_mat), I(p.sph_light))

@@ -57,6 +57,7 @@ class _Parts:
     mat_ior: list = dataclasses.field(default_factory=list)
     mat_glossy: list = dataclasses.field(default_factory=list)
     mat_exponent: list = dataclasses.field(default_factory=list)
+    mat_one_sided: list = dataclasses.field(default_factory=list)
     rect_p0: list = dataclasses.field(default_factory=list)
     rect_e1: list = dataclasses.field(default_factory=list)
     rect_e2: list = dataclasses.field(default_factory=list)
@@ -80,8 +81,26 @@ class _Parts:
         self.mat_ior.append(ior)
         self.mat_glossy.append(np.asarray(glossy, float) * np.ones(CHANNELS))
         self.mat_exponent.append(float(exponent))
+        self.mat_one_sided.append(False)
         self.mat_names.append(name or f"<internal {len(self.mat_kind)}>")
         return len(self.mat_kind) - 1
+
+    def sided(self, ctx: _Ctx, s: dict, f: str, mat: int) -> int:
+        """The material of a shape with `two_sided` (default true: both faces scatter, as
+        always here); false: a one-sided copy of `mat` (black from behind), diffuse and
+        glossy only."""
+        if "two_sided" not in s or ctx.boolean(s["two_sided"], f + ".two_sided"):
+            return mat
+        if self.mat_kind[mat] not in (MAT_DIFFUSE, MAT_GLOSSY):
+            ctx.fail(f + ".two_sided", f"only diffuse and glossy surfaces can be one-sided "
+                                      f"(material {self.mat_names[mat]!r} is not)")
+        name = f"{self.mat_names[mat]} (one-sided)"
+        if name in self.mat_names:
+            return self.mat_names.index(name)
+        k = self.add_material(self.mat_kind[mat], self.mat_albedo[mat], self.mat_ior[mat],
+                              self.mat_glossy[mat], self.mat_exponent[mat], name=name)
+        self.mat_one_sided[k] = True
+        return k
 
     def mat_ref(self, ctx: _Ctx, v, field: str) -> int:
         s = ctx.string(v, field)
@@ -209,23 +228,26 @@ def _rect(ctx: _Ctx, s: dict, f: str, parts: _Parts, mat: int, light: int = -1) 
 
 
 def _rect_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
-    ctx.table(s, {"type", "center", "normal", "size", "up", "material"},
+    ctx.table(s, {"type", "center", "normal", "size", "up", "material", "two_sided"},
               {"center", "normal", "size", "material"}, f)
-    _rect(ctx, s, f, parts, parts.mat_ref(ctx, s["material"], f + ".material"))
+    _rect(ctx, s, f, parts,
+          parts.sided(ctx, s, f, parts.mat_ref(ctx, s["material"], f + ".material")))
 
 
 def _sphere_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
-    ctx.table(s, {"type", "center", "radius", "material"}, {"center", "radius", "material"}, f)
+    ctx.table(s, {"type", "center", "radius", "material", "two_sided"},
+              {"center", "radius", "material"}, f)
     r = _radius(ctx, s, f)
     center = ctx.vec(s["center"], f + ".center", rng=COORD)
-    parts.add_sphere(center, r, parts.mat_ref(ctx, s["material"], f + ".material"))
+    parts.add_sphere(center, r,
+                     parts.sided(ctx, s, f, parts.mat_ref(ctx, s["material"], f + ".material")))
     parts.sizes.append((f + ".radius", r))
 
 
 def _basin_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
     """An open box: the floor and 4 inward-facing walls, as 5 rectangles."""
-    ctx.table(s, {"type", "min", "max", "floor_material", "wall_material", "wall_tops"},
-              {"min", "max", "floor_material", "wall_material"}, f)
+    ctx.table(s, {"type", "min", "max", "floor_material", "wall_material", "wall_tops",
+                  "two_sided"}, {"min", "max", "floor_material", "wall_material"}, f)
     lo = ctx.vec(s["min"], f + ".min", rng=COORD)
     hi = ctx.vec(s["max"], f + ".max", rng=COORD)
     if np.any(hi <= lo):
@@ -235,8 +257,8 @@ def _basin_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
     if np.any(tops <= lo[1]):
         ctx.fail(f + ".wall_tops", "every wall top must be above the floor")
     parts.sizes.append((f + ".max", float(min((hi - lo).min(), (tops - lo[1]).min()))))
-    fm = parts.mat_ref(ctx, s["floor_material"], f + ".floor_material")
-    wm = parts.mat_ref(ctx, s["wall_material"], f + ".wall_material")
+    fm = parts.sided(ctx, s, f, parts.mat_ref(ctx, s["floor_material"], f + ".floor_material"))
+    wm = parts.sided(ctx, s, f, parts.mat_ref(ctx, s["wall_material"], f + ".wall_material"))
     x0, y0, z0 = lo
     x1, _, z1 = hi
     dx, dz = x1 - x0, z1 - z0

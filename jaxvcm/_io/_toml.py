@@ -133,6 +133,11 @@ class _Ctx:
             self.fail(field, "must be > 0 in some channel")
         return a
 
+    def boolean(self, v: Any, field: str) -> bool:
+        if not isinstance(v, bool):
+            self.fail(field, f"expected true or false, got {type(v).__name__}")
+        return v
+
     def string(self, v: Any, field: str, choices=None) -> str:
         if not isinstance(v, str):
             self.fail(field, f"expected a string, got {type(v).__name__}")
