@@ -176,7 +176,7 @@ def test_snapshot_clock_starts_after_first_pass(tmp_path, monkeypatch):
 
     writes = []
     monkeypatch.setattr(R._io, "write_outputs",
-                        lambda out, img, meta, exposure=0.0: writes.append(meta["passes"]))
+                        lambda out, img, meta, exposure=0.0, layers=None: writes.append(meta["passes"]))
 
     def run_pass(i):
         time.sleep(0.6 if i == 0 else 0.05)
