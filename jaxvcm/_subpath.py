@@ -33,10 +33,14 @@ from . import _mis_recursive as mis_recursive
 from . import _vec as vec
 from ._config import RenderConfig
 from ._queue import Packed, round_width
-from ._scene import MAT_DIFFUSE, MAT_GLOSSY, Scene, Water
+from ._scene import MAT_DIFFUSE, MAT_GLOSSY, MAT_NAMES, Scene, Water
 from ._vec import Vec3
 
-KIND_MEDIUM = 3  # vertex kind of a scattering event in the water (after the MAT_* kinds)
+# vertex kind of a scattering event in the water: after every MAT_* kind, never equal to one
+# (it was 3 = MAT_GLOSSY once, which flagged glossy vertices as medium vertices at the joins:
+# no cosine in their area pdfs, the volume kernel in merging; bdpt/vcm 1-14 % low)
+KIND_MEDIUM = max(MAT_NAMES) + 1
+assert KIND_MEDIUM not in MAT_NAMES
 KIND_NONE = -1
 N_UNIFORMS = 6  # per bounce: channel, distance, direction (2), lobe, roulette
 Q_SPECULAR = 0.95  # local RR survival at delta and medium vertices
