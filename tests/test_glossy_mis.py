@@ -5,7 +5,7 @@ light), the floor glossy.
 
 Light tracing's technique (k, 1) is the only technique of `lt` for paths of k segments, so
 its MIS weight is 1 and its image is an unbiased estimate of the k-segment image L_k by
-itself. bdpt splits L_k over (1, k) NEE, (s, t) connections and (k, 1), vcm adds the merges
+itself. pt splits it over emitter hits (none: a point light) and NEE (1, k); bdpt splits L_k over (1, k) NEE, (s, t) connections and (k, 1), vcm adds the merges
 of photon y_{s-1} at z_{t-1} (s + t - 2 = k); the weights of each path sum to 1, so their
 sum estimates the same L_k. A mistake in a join's pdf at a glossy vertex breaks that sum and
 nothing else: each technique alone is still unbiased. Such a mistake was there: the vertex
@@ -83,7 +83,7 @@ def _lengths(floor, alg, seed):
     return np.asarray(_passes(_scene(floor), keys, cfg), np.float64)
 
 
-@pytest.mark.parametrize("alg", ["bdpt", "vcm"])
+@pytest.mark.parametrize("alg", ["pt", "bdpt", "vcm"])
 @pytest.mark.parametrize("floor", list(FLOORS))
 def test_bidirectional_path_lengths_equal_light_tracing_on_glossy(floor, alg):
     ref = _lengths(floor, "lt", 1)
