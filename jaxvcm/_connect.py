@@ -21,9 +21,12 @@ recursive form stay dense families over [J, N]: static slices, one kernel per fa
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from . import _geometry as geometry
 from . import _lights as lights
@@ -46,11 +49,6 @@ def vv(f):
 
 
 # ---------------------------------------------------------------- geometry helpers
-def _conv(target_medium, target_n: Vec3, w: Vec3, d, seg_water, scene: Scene, infinite=False):
-    """Solid angle at a source -> area/volume pdf factor at the target (see subpath.to_area)."""
-    return subpath.to_area(1.0, target_medium, target_n, w, d, seg_water, scene.water, infinite)
-
-
 def _unoccluded(scene: Scene, cfg: RenderConfig, o: Vec3, w: Vec3, tmax, want):
     """Shadow rays [J, N], traced only where `want` holds (False elsewhere; `_queue`)."""
     return masked_map(lambda o_, w_, t_: geometry.unoccluded(scene, o_, w_, t_, cfg.march_steps),
@@ -96,14 +94,6 @@ def _f(scene):
     return vv(lambda k_, m_, a, b, n_: subpath.eval_f(scene, k_, m_, a, b, n_))
 
 
-def _pdf(scene):
-    return vv(lambda k_, m_, a, b, n_: subpath.bsdf_pdf(scene, k_, m_, None, a, b, n_))
-
-
-def _reverse(scene):
-    return vv(lambda *args: reverse_pdf(scene, *args))
-
-
 def _sky_id(scene: Scene) -> int:
     """The light an escaped camera vertex hits: the sky or the background (a scene has at
     most one of them, `_io`); 0 when there is none (then nothing is emitted there)."""
@@ -111,6 +101,107 @@ def _sky_id(scene: Scene) -> int:
         if kind in (LIGHT_SKY, LIGHT_BACKGROUND):
             return k
     return 0
+
+
+# ---------------------------------------------------------------- the pdfs at the joins
+class JoinPdfs(NamedTuple):
+    """The four pdfs a technique (s, t) re-evaluates at its join (`_path.path_pdfs`), all
+    RR-free, in the area (surface) / volume (medium) measure of the vertex they belong to,
+    times the water's distance-sampling factor of the segment that reaches it
+    (`_subpath.to_area`):
+        A_s   A(x_s)     = A(z_{t-1}): the light side generating the camera's join vertex,
+        A_s1  A(x_{s+1}) = A(z_{t-2}): ... and the one before it (read iff t >= 3),
+        B_s1  B(x_{s-1}) = B(y_{s-1}): the camera side generating the light's join vertex,
+        B_s2  B(x_{s-2}) = B(y_{s-2}): ... and the one before it (read iff s >= 2).
+    The per-item functions below are the only place the renderer computes them (queued
+    items and dense families alike), so tests/test_join_pdfs.py checks the code that runs.
+    Vertices (`z`, `zp`, `y`, `yp`) are one vertex of a `PathEnds` (fields p, n, wo, kind,
+    mat, medium, seg_water read)."""
+
+    A_s: Array
+    A_s1: Array
+    B_s1: Array
+    B_s2: Array
+
+
+def emitter_hit_join_pdfs(scene: Scene, z, zp, light, escaped) -> JoinPdfs:
+    """s = 0: camera vertex z = z_j on light `light` (escaped: z.p is the direction to the
+    sky), zp = z_{j-1}. A_s = A(z_j): the light's pdf of the point (selection included; sky:
+    of the direction); A_s1 = A(z_{j-1}): the light emits from z_j towards z_{j-1}
+    (emission pdf) -> area at z_{j-1} (from the sky: per perpendicular area, the cosine
+    alone). No light vertex: B_s1 = B_s2 = 1 (never read)."""
+    A_s = lights.light_point_pdf(scene, light, z.p)
+    pe = lights.emission_pdf_dir(scene, light, z.n, z.wo)
+    dv = zp.p - z.p
+    d = vec.length(dv)
+    a_area = pe * subpath.to_area(1.0, zp.medium, zp.n, dv / jnp.maximum(d, 1e-30), d,
+                                  z.seg_water, scene.water)
+    c_inf = jnp.where(zp.medium, 1.0, jnp.abs(vec.dot(zp.n, z.p)))
+    one = jnp.ones_like(A_s)
+    return JoinPdfs(A_s, jnp.where(escaped, pe * c_inf, a_area), one, one)
+
+
+def nee_join_pdfs(scene: Scene, z, zp, ls: lights.LightSample, wseg):
+    """s = 1, next-event estimation from z = z_j (zp = z_{j-1}) to the light sample `ls`
+    (`lights.sample_light` at z.p: y_0 = z.p + ls.wi ls.dist, normal ls.n); wseg: the
+    shadow segment runs through the water. Returns (A0, JoinPdfs): A0 = A(y_0), the
+    light's pdf of the point (selection included; delta lights: the selection);
+    A_s = A(z_j): y_0 emits towards z_j -> area at z_j; A_s1 = A(z_{j-1}): z_j scatters
+    the light's direction -ls.wi towards z_{j-1} -> area at z_{j-1} (its own arrival
+    segment's water); B_s1 = B(y_0): z_j samples ls.wi (its wo: z.wo) -> area at y_0 (a
+    surface: P_pass in the water; sun / sky: the solid-angle pdf); B_s2 = 1 (no y_{-1})."""
+    water = scene.water
+    inf = ~jnp.isfinite(ls.dist)
+    dist = jnp.where(inf, 0.0, ls.dist)
+    A0 = lights.light_point_pdf(scene, ls.light, ls.wi)
+    pe = lights.emission_pdf_dir(scene, ls.light, ls.n, -ls.wi)
+    cos_z = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, ls.wi)))
+    g = jnp.where(inf, cos_z, cos_z / jnp.maximum(dist * dist, 1e-30))
+    A_s = pe * g * subpath.dist_pdf(water, wseg, z.medium, ls.dist)  # A(z_j)
+    A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, ls.wi, z.wo, zp.p, zp.medium, zp.n,
+                          z.seg_water)  # z_{j-1} from z_j, coming from y
+    pb = subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, ls.wi, z.n)  # y from z_j
+    cos_y = jnp.abs(vec.dot(ls.n, ls.wi))
+    B0 = jnp.where(inf, pb, pb * cos_y / jnp.maximum(dist * dist, 1e-30)
+                   * subpath.dist_pdf(water, wseg, False, ls.dist))
+    return A0, JoinPdfs(A_s, A_s1, B0, jnp.ones_like(B0))
+
+
+def light_tracing_join_pdfs(scene: Scene, y, yp, w: Vec3, d, wseg, yp_infinite) -> JoinPdfs:
+    """t = 1, light vertex y = y_i (yp = y_{i-1}) joined to the pinhole: w the unit
+    direction pinhole -> y, d the distance, wseg: the segment runs through the water;
+    yp_infinite: y_{i-1} is a light vertex at infinity (then B(y_{i-1}) stays a solid-angle
+    pdf). B_s1 = B(y_i): the pinhole samples w (`camera_importance`'s pdf, 0 off the film)
+    -> area at y_i; B_s2 = B(y_{i-1}): y_i scatters the camera's direction -w towards
+    y_{i-1} -> area at y_{i-1}. The pinhole has no light-side pdf: A_s = A_s1 = 1."""
+    imp = camera_importance(scene, w)[1]
+    B_s1 = imp * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, scene.water)
+    b2, pr = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
+                         y.seg_water)
+    one = jnp.ones_like(B_s1)
+    return JoinPdfs(one, one, B_s1, jnp.where(yp_infinite, pr, b2))
+
+
+def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
+                         yp_infinite) -> JoinPdfs:
+    """s, t >= 2: camera vertex z = z_{t-1} (zp = z_{t-2}) joined to light vertex
+    y = y_{s-1} (yp = y_{s-2}); w the unit direction z -> y, d the distance, wseg: the
+    segment runs through the water; yp_infinite: y_{s-2} is a light vertex at infinity.
+    A_s = A(z_{t-1}): y scatters (from y.wo) towards z -> area at z; B_s1 = B(y_{s-1}):
+    z scatters (from z.wo) towards y -> area at y; A_s1 = A(z_{t-2}): z scatters the
+    light's direction w towards z_{t-2}; B_s2 = B(y_{s-2}): y scatters the camera's
+    direction -w towards y_{s-2}; each -> area at its vertex, with the water of that
+    vertex's own segment."""
+    water = scene.water
+    A_s = (subpath.bsdf_pdf(scene, y.kind, y.mat, None, y.wo, -w, y.n)
+           * subpath.to_area(1.0, z.medium, z.n, w, d, wseg, water))
+    B_s1 = (subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, w, z.n)
+            * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, water))
+    A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, w, z.wo, zp.p, zp.medium, zp.n,
+                          z.seg_water)
+    b, p4 = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
+                        y.seg_water)
+    return JoinPdfs(A_s, A_s1, B_s1, jnp.where(yp_infinite, p4, b))
 
 
 # ---------------------------------------------------------------- s = 0
@@ -125,13 +216,9 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.
     Le = verts.Le  # [D, N, C] for z_1..z_D
     esc = verts.escaped
     lid = jnp.where(esc, _sky_id(scene), jnp.maximum(verts.light, 0))
-    A_s = vv(lambda l, w: lights.light_point_pdf(scene, l, w))(lid, z.p)  # z.p: sky direction if esc
-    pe = vv(lambda l, n_, w: lights.emission_pdf_dir(scene, l, n_, w))(lid, z.n, z.wo)
-    dv = zp.p - z.p
-    d = vec.length(dv)
-    a_area = pe * _conv(zp.medium, zp.n, dv / jnp.maximum(d, 1e-30), d, z.seg_water, scene)
-    c_inf = jnp.where(zp.medium, 1.0, jnp.abs(vec.dot(zp.n, z.p)))
-    A_s1 = jnp.where(esc, pe * c_inf, a_area)
+    # z.p: the sky direction if escaped
+    A_s, A_s1, _, _ = vv(lambda z_, zp_, l, e_: emitter_hit_join_pdfs(scene, z_, zp_, l, e_))(
+        z, zp, lid, esc)
     one = jnp.ones((D, N), dt)
     log_n = log_n_light_tracing(cfg, N, dt)
     if parts is None:
@@ -174,17 +261,8 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
     Tr = _tr(scene, wseg, jnp.where(inf, jnp.inf, ls.dist))
     contrib = z.beta * f * ls.Le * Tr / ls.pdf_w[..., None]
     # ---- pdfs at the join ----
-    A0 = vv(lambda l, w: lights.light_point_pdf(scene, l, w))(ls.light, ls.wi)
-    pe = vv(lambda l, n_, w: lights.emission_pdf_dir(scene, l, n_, w))(ls.light, ls.n, -ls.wi)
-    cos_z = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, ls.wi)))
-    g = jnp.where(inf, cos_z, cos_z / jnp.maximum(dist * dist, 1e-30))
-    A_s = pe * g * subpath.dist_pdf(scene.water, wseg, z.medium, ls.dist)  # A(z_j)
-    A_s1, _ = _reverse(scene)(z.kind, z.mat, z.n, z.p, ls.wi, z.wo, zp.p, zp.medium, zp.n,
-                              z.seg_water)  # z_{j-1} from z_j, coming from y
-    pb = _pdf(scene)(z.kind, z.mat, z.wo, ls.wi, z.n)  # y from z_j
-    cos_y = jnp.abs(vec.dot(ls.n, ls.wi))
-    B0 = jnp.where(inf, pb, pb * cos_y / jnp.maximum(dist * dist, 1e-30)
-                   * subpath.dist_pdf(scene.water, wseg, False, ls.dist))
+    A0, (A_s, A_s1, B0, _) = vv(lambda z_, zp_, l_, w_: nee_join_pdfs(scene, z_, zp_, l_, w_))(
+        z, zp, ls, wseg)
     # the fresh light sample as a one-vertex light subpath
     J = len(js)
     f1 = jnp.zeros((J, N, 1), bool)
@@ -228,10 +306,9 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     contrib = (y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30))[..., None]
                / (N * cfg.chunks))  # 1/N of the whole pass: every chunk splats
     # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
-    B_s1 = imp * _conv(y.medium, y.n, w, d, wseg, scene)
-    b2, pr = _reverse(scene)(y.kind, y.mat, y.n, y.p, to_cam, y.wo, yp.p, yp.medium, yp.n,
-                             y.seg_water)
-    B_s2 = jnp.where(((idx - 1) == 0)[:, None] & e.infinite[None], pr, b2)
+    yp_inf = jnp.broadcast_to(((idx - 1) == 0)[:, None] & e.infinite[None], (J, N))
+    _, _, B_s1, B_s2 = vv(lambda *a: light_tracing_join_pdfs(scene, *a))(y, yp, w, d, wseg,
+                                                                         yp_inf)
     one = jnp.ones((J, N), dt)
     N0 = jnp.ones((1, N), dt)
     camp = Pdfs(N0, N0, N0, jnp.zeros((1, N), bool), jnp.zeros((1, N), bool))  # z_0 alone
@@ -267,13 +344,9 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     Tr = _tr(scene, wseg, d)
     contrib = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)[..., None]
     contrib = contrib * both_dispersed(scene.channels, y.disp, z.disp).astype(dt)
-    A_s = _pdf(scene)(y.kind, y.mat, y.wo, -w, y.n) * _conv(z.medium, z.n, w, d, wseg, scene)
-    B_s1 = _pdf(scene)(z.kind, z.mat, z.wo, w, z.n) * _conv(y.medium, y.n, w, d, wseg, scene)
-    A_s1, _ = _reverse(scene)(z.kind, z.mat, z.n, z.p, w, z.wo, zp.p, zp.medium, zp.n,
-                              z.seg_water)
-    b, p4 = _reverse(scene)(y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
-                            y.seg_water)
-    B_s2 = jnp.where(((ss - 2) == 0)[:, None] & e.infinite[None], p4, b)
+    yp_inf = jnp.broadcast_to(((ss - 2) == 0)[:, None] & e.infinite[None], ok.shape)
+    A_s, A_s1, B_s1, B_s2 = vv(lambda *a: connection_join_pdfs(scene, *a))(y, yp, z, zp, w, d,
+                                                                          wseg, yp_inf)
     log_n = log_n_light_tracing(cfg, N, dt)
     wgt = family_weights(cfg, ss, ts, pdfs(lig), (None, 1), pdfs(cam), (None, 1), A_s, A_s1,
                          B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
@@ -317,7 +390,6 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
     J = len(ss)
     dt = cam.A.dtype
     C = scene.channels
-    water = scene.water
     log_n = log_n_light_tracing(cfg, N, dt)
     ok = (rows(lig, ss - 1).alive & ~rows(lig, ss - 1).delta
           & rows(cam, ts - 1).alive & ~rows(cam, ts - 1).delta)
@@ -336,15 +408,8 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
         contrib = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)
         contrib = contrib * both_dispersed(C, y.disp, z.disp).astype(dt)
         # ---- the four pdfs the join changes ----
-        A_s = (subpath.bsdf_pdf(scene, y.kind, y.mat, None, y.wo, -w, y.n)
-               * subpath.to_area(1.0, z.medium, z.n, w, d, wseg, water))
-        B_s1 = (subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, w, z.n)
-                * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, water))
-        A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, w, z.wo, zp.p, zp.medium, zp.n,
-                              z.seg_water)
-        b, p4 = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
-                            y.seg_water)
-        B_s2 = jnp.where((s == 2) & e.infinite[n], p4, b)
+        A_s, A_s1, B_s1, B_s2 = connection_join_pdfs(scene, y, yp, z, zp, w, d, wseg,
+                                                     (s == 2) & e.infinite[n])
         sg = jax.lax.stop_gradient
         wgt = sg(mis_join(cfg).join_weight(cfg, s, t, parts[0], parts[1], sg(A_s), sg(A_s1),
                                            sg(B_s1), sg(B_s2), e.delta[n], e.infinite[n],
@@ -394,7 +459,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
     def item(i, n):
         j = j_of[i]
         z, zp = _at(cam, j, n), _at(cam, j - 1, n)
-        ls, inf, dist, oz, tmax = shadow_ray(i, n)
+        ls, inf, _, oz, tmax = shadow_ray(i, n)
         is_delta_l = is_delta[ls.light]
         f = subpath.eval_f(scene, z.kind, z.mat, z.wo, ls.wi, z.n)
         vis = geometry.unoccluded(scene, oz, ls.wi, tmax, cfg.march_steps)
@@ -402,24 +467,14 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         Tr = _tr_one(scene, wseg, jnp.where(inf, jnp.inf, ls.dist))
         contrib = z.beta * f * ls.Le * Tr / ls.pdf_w
         # ---- pdfs at the join ----
-        A0 = lights.light_point_pdf(scene, ls.light, ls.wi)
-        pe = lights.emission_pdf_dir(scene, ls.light, ls.n, -ls.wi)
-        cos_z = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, ls.wi)))
-        g = jnp.where(inf, cos_z, cos_z / jnp.maximum(dist * dist, 1e-30))
-        A_s = pe * g * subpath.dist_pdf(water, wseg, z.medium, ls.dist)  # A(z_j)
-        A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, ls.wi, z.wo, zp.p, zp.medium, zp.n,
-                              z.seg_water)  # z_{j-1} from z_j, coming from y
-        pb = subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, ls.wi, z.n)  # y from z_j
-        cos_y = jnp.abs(vec.dot(ls.n, ls.wi))
-        B0 = jnp.where(inf, pb, pb * cos_y / jnp.maximum(dist * dist, 1e-30)
-                       * subpath.dist_pdf(water, wseg, False, ls.dist))
+        A0, (A_s, A_s1, B0, B_s2) = nee_join_pdfs(scene, z, zp, ls, wseg)
         # the fresh light sample as a one-vertex light subpath: its entries in closed form
         # (`start_entries`; building its partials per item cost a third of this stage)
         s1 = jnp.asarray(1, jnp.int32)
         mj = mis_join(cfg)
         Le_ = mj.start_entries(cfg, sg(A0), is_delta_l, sg(etas[0]))
         Ce_ = mj.entries(cfg, parts[1], j + 1, s1, (n,))
-        w = sg(mj.join(cfg, s1, j + 1, Le_, Ce_, sg(A_s), sg(A_s1), sg(B0), jnp.ones((), dt),
+        w = sg(mj.join(cfg, s1, j + 1, Le_, Ce_, sg(A_s), sg(A_s1), sg(B0), sg(B_s2),
                        is_delta_l, inf, sg(log_n)))
         return jnp.where(ls.valid & vis, contrib * w, 0.0)
 
@@ -469,13 +524,10 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
         fterm = jnp.where(first, f0, fi)
         contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30)) / (N * cfg.chunks)
         # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
-        B_s1 = imp * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, water)
-        b2, pr = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, to_cam, y.wo, yp.p, yp.medium,
-                             yp.n, y.seg_water)
-        B_s2 = jnp.where((i == 1) & e.infinite[n], pr, b2)
-        one = jnp.ones((), dt)
+        A_s, A_s1, B_s1, B_s2 = light_tracing_join_pdfs(scene, y, yp, w, d, wseg,
+                                                        (i == 1) & e.infinite[n])
         wgt = sg(mis_join(cfg).join_weight(cfg, i + 1, jnp.asarray(1, jnp.int32), parts[0], Cp,
-                                           one, one, sg(B_s1), sg(B_s2), e.delta[n],
+                                           A_s, A_s1, sg(B_s1), sg(B_s2), e.delta[n],
                                            e.infinite[n], sg(log_n), lanes=((n,), (0,))))
         return pix, jnp.where(vis & inside, contrib * wgt, 0.0)
 
