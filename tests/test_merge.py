@@ -5,6 +5,7 @@ water lit by the sun, seen from ABOVE the water (sun -> refraction -> floor -> r
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import numpy as np
@@ -146,6 +147,19 @@ def test_pass_radius_schedules_surface_and_medium(alpha):
         np.testing.assert_allclose(float(r.medium), r1 * i ** ((alpha - 1) / 3), rtol=1e-6)
 
 
+def _medium_furnace(Le):
+    return jaxvcm.scene_from_dict(A.medium_furnace(Le, (0.25, 0.5, 1.0), w=8, h=8))
+
+
+@functools.lru_cache(maxsize=None)
+def _medium_furnace_pt(Le, D, P):
+    """The path tracer's reference for test_medium_furnace_with_medium_merging (the same
+    for ppm and vcm: rendered once, its P passes in one batch, one compiled program)."""
+    sc = _medium_furnace(np.array(Le))
+    ref = RenderConfig(algorithm="pt", max_depth=D, rr_depth=100, spp=64)
+    return A.pooled(A.render_stats(sc, ref, passes=P, seed=4, batch=P)[2])
+
+
 @pytest.mark.parametrize("alg", ["ppm", "vcm"])
 def test_medium_furnace_with_medium_merging(alg):
     # Box of emitting walls (Le, albedo 0) filled with a purely scattering medium
@@ -163,7 +177,7 @@ def test_medium_furnace_with_medium_merging(alg):
     # scattered share S of the image (S < 1) is low by at most ~ 6r * 3/16 = 1.125 r / m
     # (3.4 % at r = 3 cm; edges and corners lose more but are rarer: bound it by 1.5 r).
     Le = np.array([1.0, 2.0, 0.5])
-    sc = jaxvcm.scene_from_dict(A.medium_furnace(Le, (0.25, 0.5, 1.0), w=8, h=8))
+    sc = _medium_furnace(Le)
     from jaxvcm._merge import pass_radius
     from jaxvcm._scene import bounding_sphere
 
@@ -178,8 +192,7 @@ def test_medium_furnace_with_medium_merging(alg):
         assert int(diag.nonfinite) == 0
         imgs.append(np.asarray(img, np.float64))
     m, se = A.pooled(np.array(imgs))
-    ref = RenderConfig(algorithm="pt", max_depth=D, rr_depth=100, spp=64)
-    m_pt, se_pt = A.pooled(A.render_stats(sc, ref, passes=P, seed=4)[2])
+    m_pt, se_pt = _medium_furnace_pt(tuple(Le), D, P)
     tol = K * np.hypot(se, se_pt) + 1.5 * r_m * Le
     assert np.all(np.abs(m - m_pt) <= tol), (m, se, m_pt, se_pt)
     assert np.all(se < 0.02 * Le)  # teeth: the bugs above move the image by 10-50 %
@@ -226,17 +239,22 @@ def test_merging_bias_shrinks_with_radius():
     # takes ~16 / b^3 photon-passes, so the 2 cm bias (3.8 %) is only bounded, not resolved.
     h = 0.1
     sc = jaxvcm.scene_from_dict(_disk_light_scene(h, w=32))
+    from jaxvcm._merge import pass_radius
     from jaxvcm._scene import bounding_sphere
 
     rb = float(bounding_sphere(sc)[1])
     E0 = _blurred_irradiance(h, 1e-4)
     biases = []
-    for r in (0.08, 0.04, 0.02):
-        # alpha -> 1 keeps the radius (nearly) fixed over the passes
-        cfg = RenderConfig(algorithm="ppm", max_depth=2, radius=r / rb, alpha=0.999999)
+    # One compiled program for the three radii (the radius is static in the config): the
+    # progressive schedule r_i = r_1 i^((alpha - 1) / 2) with alpha = 0.5 is 8, 4, 2 cm at
+    # i = 1, 16, 256, and every pass of a radius is rendered at that fixed pass index (the
+    # index drives nothing but the radius; the keys stay independent)
+    cfg = RenderConfig(algorithm="ppm", max_depth=2, radius=0.08 / rb, alpha=0.5)
+    for r, index in ((0.08, 0), (0.04, 15), (0.02, 255)):
+        np.testing.assert_allclose(float(pass_radius(cfg, sc, index).surface), r, rtol=1e-5)
         imgs = []
         for i in range(48 if r > 0.03 else 160):
-            img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(7, i), cfg, i)
+            img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(7, i), cfg, index)
             assert int(diag.nonfinite) == 0
             imgs.append(np.asarray(img, np.float64)[..., 0] * np.pi)  # -> irradiance
         x = np.array(imgs).mean(axis=(1, 2))
