@@ -447,8 +447,10 @@ def _merges(sc, cam, lig, e):
     etas = _merge.log_etas(radius, 1, F64)
     log_n = log_n_light_tracing(CFG_MERGE, 1, F64)
     parts = both_partials(CFG_MERGE, pdfs(lig), pdfs(cam), e.delta, log_n, etas)
-    est, rep = _merge.vertex_merging(sc, CFG_MERGE, cam, lig, e, radius, parts, by_photon=True)
-    return est, rep.overflow
+    out = _merge.vertex_merging(sc, CFG_MERGE, cam, lig, e, radius, parts, by_photon=True)
+    # (est, overflow, need) or (est, `_merge.Merged` report): _merge.py is being changed
+    overflow = out[1].overflow if hasattr(out[1], "overflow") else out[1]
+    return out[0], overflow
 
 
 _weight = jax.jit(weight, static_argnums=(0,))
