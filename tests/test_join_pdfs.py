@@ -679,7 +679,8 @@ def _no_cosine(orig):
 
 
 def _swapped(orig):
-    return lambda scene, kind, mat, md, wo, wi, n: orig(scene, kind, mat, md, wi, wo, n)
+    return lambda scene, kind, mat, md, wo, wi, n, *rest: orig(scene, kind, mat, md, wi, wo, n,
+                                                               *rest)
 
 
 def _wrong_end(orig):
@@ -688,19 +689,19 @@ def _wrong_end(orig):
 
 
 def _cos2(orig):
-    def camera_importance(scene, w):
-        pix, imp, inside = orig(scene, w)
+    def camera_importance(scene, w, *rest):
+        pix, imp, inside = orig(scene, w, *rest)
         f = scene.camera.forward
         return pix, imp * (w.x * f[0] + w.y * f[1] + w.z * f[2]), inside
     return camera_importance
 
 
 def _backwards(orig):
-    return lambda scene, light, n, w: orig(scene, light, n, -w)
+    return lambda scene, light, n, w, *rest: orig(scene, light, n, -w, *rest)
 
 
 def _flipped(orig):
-    return lambda scene, light, w: orig(scene, light, -w)
+    return lambda scene, light, w, *rest: orig(scene, light, -w, *rest)
 
 
 # name -> (scenes, module, attribute, the mistake given the original)
