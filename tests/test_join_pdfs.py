@@ -68,8 +68,7 @@ from jaxvcm import _subpath as SP
 from jaxvcm import _merge
 from jaxvcm._path import Pdfs, both_partials, log_n_light_tracing, pdfs, weight
 from jaxvcm._scene import (LIGHT_POINT, LIGHT_RECT, LIGHT_SKY, MAT_DIELECTRIC, MAT_DIFFUSE,
-                           MAT_GLOSSY,
-                           MAT_MIRROR, PHASE_ISOTROPIC)
+                           MAT_GLOSSY, MAT_MIRROR, PHASE_ISOTROPIC)
 from jaxvcm._vec import Vec3
 
 from .test_mis import oracle, oracle_vcm
@@ -96,9 +95,12 @@ def unit(v):
 
 # ---------------------------------------------------------------- brute force, NumPy
 COVER = collections.Counter()  # what the brute force evaluated (coverage of the checks)
-# A vertex of a full path: position, normal, what it is (the generator's label, not the
-# renderer's kind code), and for surfaces the material's numbers.
+
+
 class Vx(dict):
+    """A vertex of a full path: position, normal, what it is (the generator's label, not
+    the renderer's kind code), and for surfaces the material's numbers."""
+
     __getattr__ = dict.__getitem__
 
 
@@ -178,14 +180,22 @@ def light_pdfs(sc, x0, w):
     return 1.0, 1.0 / (4.0 * np.pi)
 
 
+def height(w, x, z):
+    """The water surface's height and its gradient (dh/dx, dh/dz) at (x, z) (NumPy)."""
+    waves = [tuple(float(c) for c in t) for t in zip(w.amp, w.kx, w.kz, w.phase0)]
+    h = float(w.level) + sum(a * np.sin(kx * x + kz * z + ph) for a, kx, kz, ph in waves)
+    hx = sum(a * kx * np.cos(kx * x + kz * z + ph) for a, kx, kz, ph in waves)
+    hz = sum(a * kz * np.cos(kx * x + kz * z + ph) for a, kx, kz, ph in waves)
+    return h, hx, hz
+
+
 def in_water(sc, p):
     """The water body (NumPy): inside the footprint, above the floor, below the surface."""
     w = sc.water
     if not w.enabled:
         return False
     fp = np.asarray(w.footprint, float)
-    h = float(w.level) + sum(float(a) * np.sin(float(kx) * p[0] + float(kz) * p[2] + float(ph))
-                             for a, kx, kz, ph in zip(w.amp, w.kx, w.kz, w.phase0))
+    h = height(w, p[0], p[2])[0]
     return bool(fp[0] < p[0] < fp[1] and fp[2] < p[2] < fp[3] and float(w.floor) < p[1] < h)
 
 
@@ -285,15 +295,10 @@ def _interior_vertex(sc, rng, prev, prev2):
         p = np.asarray(sc.spheres.center[i], float) + float(sc.spheres.radius[i]) * n
         return _surface_vertex(sc, p, n, int(sc.spheres.mat[i]))
     x, z = rng.uniform(-0.95, 0.95, 2)
-    h = float(w.level) + sum(float(a) * np.sin(float(kx) * x + float(kz) * z + float(ph))
-                             for a, kx, kz, ph in zip(w.amp, w.kx, w.kz, w.phase0))
+    h, hx, hz = height(w, x, z)
     if c == "medium":  # the record's normal is whatever the ray would have hit: random
         return Vx(p=np.array([x, rng.uniform(float(w.floor) + 0.05, h - 0.05), z]),
                   n=unit(rng.normal(size=3)), what="medium", delta=False)
-    hx = sum(float(a) * float(kx) * np.cos(float(kx) * x + float(kz) * z + float(ph))
-             for a, kx, kz, ph in zip(w.amp, w.kx, w.kz, w.phase0))
-    hz = sum(float(a) * float(kz) * np.cos(float(kx) * x + float(kz) * z + float(ph))
-             for a, kx, kz, ph in zip(w.amp, w.kx, w.kz, w.phase0))
     return Vx(p=np.array([x, h, z]), n=unit(np.array([-hx, 1.0, -hz])), what="surface",
               mkind=MAT_DIELECTRIC, mat=w.mat, delta=True)
 
@@ -532,6 +537,20 @@ def check_path(name, seed, k, R: Renderer, merging=False):
                         b(np.linalg.norm(dv)), b(water[s - 1]), b(s == 2 and infinite))
         A_s, A_s1, B_s1, B_s2 = (float(x) for x in jp)
         # ---- step 2: the join pdfs the technique reads, against brute force ----
+        # Which full-path pdf each one is (y_i = x_i, z_j = x_{k-j}; G = |cos| / d^2 at the
+        # receiving vertex, 1 / d^2 at a medium vertex, times the water's distance sampling
+        # of the segment, `area`; from / to a light at infinity per perpendicular area /
+        # solid angle, `full_path_pdfs`):
+        #   A_s  = A(x_s): s = 0 the light's pdf of the point the camera path hit; s = 1
+        #          the light's emission pdf towards x_1, times G at x_1; s >= 2 y_{s-1}'s
+        #          pdf of scattering from x_{s-2} towards x_s, times G at x_s;
+        #   A_s1 = A(x_{s+1}), read iff t >= 3: z_{t-1} = x_s scattering the light that
+        #          arrives from x_{s-1} towards x_{s+1}, times G at x_{s+1};
+        #   B_s1 = B(x_{s-1}): t = 1 the pinhole's pdf of the direction to x_{k-1}, times
+        #          G there; else z_{t-1} = x_s scattering from x_{s+1} towards x_{s-1},
+        #          times G at x_{s-1};
+        #   B_s2 = B(x_{s-2}), read iff s >= 2: y_{s-1} = x_{s-1} scattering from x_s
+        #          towards x_{s-2}, times G at x_{s-2}.
         if s < k + 1 and t >= 2:
             cmp(f"A_s {tag}", A_s, A[s])
         if t >= 3:
