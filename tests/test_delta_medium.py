@@ -15,9 +15,10 @@ the same programs):
          volume merging from medium vertices), the floor and the walls seen through the
          surface;
   under: the camera in the water looks obliquely up, beyond the critical angle, away
-         from the light towards the walls it lights: the top of the image is the surface's total internal reflection, a
-         delta vertex between two medium segments; the camera itself is in the medium
-         (light tracing and s >= 2 connections carry 30-35 % of this image).
+         from the light towards the walls it lights: the top of the image is the
+         surface's total internal reflection, a delta vertex between two medium segments;
+         the camera itself is in the medium (light tracing and s >= 2 connections carry
+         30-35 % of this image).
 
 Reference: path tracing (emitter hits + NEE, MIS between them) converges here: the light is
 an area light inside the water, so NEE from medium and surface vertices reaches it
@@ -33,13 +34,14 @@ blocks: above, the far half is 4x dimmer than the near one, and 2 x 2 blocks wou
 the passes to keep its combined SE under 1.25 %.
 
 What VCM puts where (technique images, 32 passes): above, merges carry 7-9 % of the image
-(mostly at z_2 on the floor seen through the surface; volume merges about 1 %: removing them
-lowers the halves by 0.4-0.7 % and 1.2-1.5 %), s = 2 connections 9-11 %; under, light tracing and
-connections with s >= 2 carry 30-35 % and merges 1-2 % (volume merges < 0.1 %). This test resolves about 3-4 %
-(the combined SE is 0.56-1.07 %): it does not see the volume-merging kernel on its own
-(tests/test_merge.py::test_medium_furnace_with_medium_merging does, in a furnace without a
-delta interface), it sees everything that changes the medium transport or the weights of
-whole technique families through the surface by a few per cent.
+(mostly at z_2 on the floor seen through the surface; volume merges about 1 %: removing
+them lowers the halves by 0.4-0.7 % and 1.2-1.5 %), s = 2 connections 9-11 %; under, light
+tracing and connections with s >= 2 carry 30-35 % and merges 1-2 % (volume merges
+< 0.1 %). This test resolves about 3-4 % (the combined SE is 0.56-1.07 %): it does not see
+the volume-merging kernel on its own (tests/test_merge.py::
+test_medium_furnace_with_medium_merging does, in a furnace without a delta interface); it
+sees what changes the medium transport, or the weights of whole technique families through
+the surface, by a few per cent.
 
 Sizes: 8 x 8 pixels, 16 spp: N = 1024 paths per side, so PT's camera subpaths (1024 lanes)
 and BDPT / VCM's joint trace (2N = 2048 lanes) each run as one dense round of
