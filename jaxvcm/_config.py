@@ -80,6 +80,10 @@ class RenderConfig:
     alpha:       radius reduction exponent (0 < alpha < 1).
     merge_capacity: static bound on hash-grid candidates per gather point; overflow is
                  flagged in the diagnostics and the host re-runs the pass with more room.
+    photon_capacity: static number of photons (valid light vertices) the merging hash grid
+                 holds per pass (chunk); 0 = a quarter of the light-vertex slots, at least
+                 4096 (`_merge.photon_room`). Overflow is flagged like merge_capacity's and
+                 the host re-runs the pass with room for every photon.
     trace_split: the subpath tracer advances 1/trace_split of the lanes (at least
                  `_queue.MIN_ROUND`) per round, taking
                  only lanes whose subpath is still alive (`_subpath.trace`); 1 = every
@@ -108,6 +112,7 @@ class RenderConfig:
     radius: float = 0.005
     alpha: float = 0.75
     merge_capacity: int = 512
+    photon_capacity: int = 0
     mis_form: str = "explicit"
     trace_split: int = 8
     chunks: int = 1
@@ -139,5 +144,9 @@ class RenderConfig:
         if not isinstance(self.merge_capacity, int) or self.merge_capacity < 1:
             raise ValueError(f"config.merge_capacity: must be a positive integer, "
                              f"got {self.merge_capacity!r}")
+        if (not isinstance(self.photon_capacity, int) or isinstance(self.photon_capacity, bool)
+                or self.photon_capacity < 0):
+            raise ValueError(f"config.photon_capacity: must be a non-negative integer "
+                             f"(0: the default), got {self.photon_capacity!r}")
         if not isinstance(self.rr_depth, int) or self.rr_depth < 1:
             raise ValueError(f"config.rr_depth: must be a positive integer, got {self.rr_depth!r}")

@@ -246,21 +246,36 @@ class _Queries(NamedTuple):
     b: int
 
 
-def _prep(grid: HashGrid, qx, qy, qz, radius, chunk: int, sort_queries: bool) -> _Queries:
+def _prep(grid: HashGrid, qx, qy, qz, radius, chunk: int, sort_queries: bool,
+          valid=None) -> _Queries:
     """Cast, optionally sort by the bucket of the lower corner of the block (queries with
     the same block become neighbouring lanes: shared candidates in cache, and similar
     candidate counts within a chunk; 1.1-1.9x faster on random queries, more for
-    larger M), pad to chunks."""
+    larger M), pad to chunks. Queries where `valid` (None: all) is False become NaN (no
+    candidates) and, sorted, go to the end, so whole chunks of them are skipped. The sort
+    key is the block's hash modulo at most 2**(32 - bits of n) - 1 buckets, so that key and
+    index pack into one uint32 (`sort_order`'s fast path): queries with the same block stay
+    neighbours, and the order of the lanes never changes a query's sum (each lane adds its
+    own pairs in candidate order)."""
     dt = grid.dtype
     r = grid.radius if radius is None else jnp.asarray(radius).astype(dt)
     q = [jnp.asarray(a).astype(dt) for a in (qx, qy, qz)]
     n = q[0].shape[0]
     qi, inv = lax.iota(jnp.int32, n), None
+    ok = None if valid is None else jnp.asarray(valid, bool)
     if sort_queries and n > 1:
-        key = _hash(*_lower_corner(grid, *q, r), grid.table_size)
-        qi = sort_order(key, grid.table_size)
+        kq = min(grid.table_size, (1 << (32 - max(1, (n - 1).bit_length()))) - 1)
+        kq = max(kq, 1)
+        key = _hash(*_lower_corner(grid, *q, r), kq)
+        live = jnp.isfinite(q[0]) & jnp.isfinite(q[1]) & jnp.isfinite(q[2])
+        if ok is not None:
+            live = live & ok
+        qi = sort_order(jnp.where(live, key, kq), kq + 1)
         inv = jnp.zeros((n,), jnp.int32).at[qi].set(lax.iota(jnp.int32, n), unique_indices=True)
         q = [_gather(a, qi) for a in q]
+        ok = None if ok is None else _gather(ok, qi)
+    if ok is not None:
+        q = [jnp.where(ok, a, jnp.nan) for a in q]
     b = max(1, min(int(chunk), n))
     pad = (-n) % b
     q = [jnp.concatenate([a, jnp.full((pad,), jnp.nan, dt)]).reshape(-1, b) for a in q]
@@ -277,7 +292,7 @@ def _unsort(qs: _Queries, a: Array) -> Array:
 def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
                  fn: Callable[[Array, Array, Array], Any], radius: ArrayLike | None = None,
                  *, max_candidates: int | None = None, chunk: int = DEFAULT_CHUNK,
-                 sort_queries: bool = True, return_need: bool = False):
+                 sort_queries: bool = True, return_need: bool = False, valid=None):
     """Sum over neighbours of a per-pair kernel, without a [Q, K] array.
 
     `fn(qi, pj, d2)` gets [B] arrays (query index into the given queries, point index into
@@ -292,6 +307,7 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
     Choose it from the candidate counts (tests/_hashgrid_oracles.py `candidate_counts`).
     return_need: also return the longest candidate list of any query (int32), which is the
     capacity that would have been enough: the host re-runs once with that much room.
+    `valid` ([Q] bool, None: all): the other queries get zero sums without a look-up.
     Queries are (optionally, static `sort_queries`) sorted by block, then processed in
     chunks of `chunk` (static) lanes: distance tests ~ sum over chunks of chunk * max
     candidates; the kernel runs on the neighbour pairs only, `chunk` pairs per call
@@ -305,13 +321,19 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
         out = jax.tree.map(lambda s: jnp.zeros((n_q,) + s.shape[1:], s.dtype), shape)
         none = (out, jnp.zeros((), bool))
         return none + (jnp.zeros((), jnp.int32),) if return_need else none
-    qs = _prep(grid, qx, qy, qz, radius, chunk, sort_queries)
+    qs = _prep(grid, qx, qy, qz, radius, chunk, sort_queries, valid)
     r = qs.r
     r2 = r * r
     cap = None if max_candidates is None else int(max_candidates)
     zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
 
     def one_chunk(args):
+        qi, (cx, cy, cz) = args
+        # a chunk of invalid (NaN) queries only: no look-up (sorted, they are the last)
+        return lax.cond(jnp.any(jnp.isfinite(cx)), live_chunk,
+                        lambda _: (zeros, jnp.zeros((), jnp.int32)), args)
+
+    def live_chunk(args):
         qi, (cx, cy, cz) = args
         blk = _block(grid, cx, cy, cz, r)
         tmax = jnp.max(blk.total)

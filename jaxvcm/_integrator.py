@@ -74,8 +74,10 @@ class PassStats(eqx.Module):
 
     camera_vertices: Int[Array, ""]
     light_vertices: Int[Array, ""]
-    merge_overflow: Bool[Array, ""]
+    merge_overflow: Bool[Array, ""]  # merging missed something (candidates or photons)
     merge_candidates: Int[Array, ""]  # longest hash-grid candidate list of a gather point
+    photon_overflow: Bool[Array, ""]  # more valid photons than the grid's photon room
+    merge_photons: Int[Array, ""]  # valid photons of the pass (largest chunk)
 
 
 class PassState(eqx.Module):
@@ -102,8 +104,7 @@ class PassState(eqx.Module):
     merge_lengths: bool = eqx.field(static=True, default=False)  # merges split by photon
     labels: tuple[Technique, ...] = eqx.field(static=True, default=())
     values: tuple = ()  # per label: [N, C] per camera path, or a (pixel, value) splat
-    overflow: Any = None  # merging gather ran out of candidate room
-    need: Any = None  # longest candidate list of a gather point
+    merged: Any = None  # `_merge.Merged`: overflow flags, candidates and photons needed
     images: Any = None  # film: `TechniqueImages` and `PassStats`
     stats: Any = None
 
@@ -165,9 +166,9 @@ def setup(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
         radius = merge.pass_radius(cfg, scene, st.pass_index)
     if tech.merging == "all":
         etas = merge.log_etas(radius, N, dt)
-    zero = jnp.zeros((), jnp.int32)
+    zero, no = jnp.zeros((), jnp.int32), jnp.zeros((), bool)
     return dataclasses.replace(st, keys=jax.random.split(st.key, 5), radius=radius,
-                               etas=etas, overflow=jnp.zeros((), bool), need=zero)
+                               etas=etas, merged=merge.Merged(no, zero, zero, no))
 
 
 # ---- camera rays: one per path through its pixel, and the camera subpaths' uniforms
@@ -281,14 +282,14 @@ def connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 # ---- merging: hash grid over the light vertices, gather at camera vertices
 def photon_gather(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     """ppm: at the first non-delta camera vertex."""
-    img, overflow, need = merge.photon_gather(scene, cfg, st.cends, st.cverts, st.lends, st.radius)
+    img, merged = merge.photon_gather(scene, cfg, st.cends, st.cverts, st.lends, st.radius)
     st = _add(st, {Technique("gather", 0, 0): img})
-    return dataclasses.replace(st, overflow=overflow, need=need)
+    return dataclasses.replace(st, merged=merged)
 
 
 def vertex_merging(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     """bpm, vcm: at every camera vertex."""
-    vm, overflow, need = merge.vertex_merging(scene, cfg, st.cends, st.lends, st.emission,
+    vm, merged = merge.vertex_merging(scene, cfg, st.cends, st.lends, st.emission,
                                               st.radius, st.parts, st.merge_lengths)
     if st.merge_lengths:  # photon y_{i+1} (s = i + 2 light vertices) at z_{j+1} (t = j + 2)
         st = _add(st, {Technique("merge", i + 2, j + 2): vm[j, :, i]
@@ -297,7 +298,13 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     else:
         st = _add(st, {Technique("merge", 0, j + 2): vm[j]  # merging at camera vertex z_{j+1}
                        for j in range(vm.shape[0])})
-    return dataclasses.replace(st, overflow=overflow, need=need)
+    return dataclasses.replace(st, merged=merged)
+
+
+def _merge_stats(st: PassState):
+    """PassStats' merging fields (overflow, candidates, photon overflow, photons)."""
+    m = st.merged
+    return m.overflow, m.need, m.photon_overflow, m.photons
 
 
 # ---- film: every technique's image, and the pass's counts
@@ -317,7 +324,7 @@ def film(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     camera_vertices = zero if st.cverts is None else jnp.sum(st.cverts.alive)
     light_vertices = zero if st.lverts is None else jnp.sum(st.lverts.alive)
     stats = PassStats(camera_vertices.astype(jnp.int32), light_vertices.astype(jnp.int32),
-                      st.overflow, st.need)
+                      *_merge_stats(st))
     return dataclasses.replace(st, images=TechniqueImages(st.labels, jnp.stack(images)),
                                stats=stats)
 
@@ -411,7 +418,7 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
     zero = jnp.zeros((), jnp.int32)
     cv = zero if st.cverts is None else jnp.sum(st.cverts.alive).astype(jnp.int32)
     lv = zero if st.lverts is None else jnp.sum(st.lverts.alive).astype(jnp.int32)
-    return img, bad, PassStats(cv, lv, st.overflow, st.need)
+    return img, bad, PassStats(cv, lv, *_merge_stats(st))
 
 
 def _integrate_chunks(scene, key, cfg, pass_index):
@@ -428,12 +435,14 @@ def _integrate_chunks(scene, key, cfg, pass_index):
         stats = PassStats(stats.camera_vertices + s2.camera_vertices,
                           stats.light_vertices + s2.light_vertices,
                           stats.merge_overflow | s2.merge_overflow,
-                          jnp.maximum(stats.merge_candidates, s2.merge_candidates))
+                          jnp.maximum(stats.merge_candidates, s2.merge_candidates),
+                          stats.photon_overflow | s2.photon_overflow,
+                          jnp.maximum(stats.merge_photons, s2.merge_photons))
         return (img + i2, bad + b2, stats), None
 
     zero = jnp.zeros((), jnp.int32)
     init = (jnp.zeros((H * W, C), cam.origin.dtype), zero,
-            PassStats(zero, zero, jnp.zeros((), bool), zero))
+            PassStats(zero, zero, jnp.zeros((), bool), zero, jnp.zeros((), bool), zero))
     (img, bad, stats), _ = jax.lax.scan(body, init, jnp.arange(cfg.chunks, dtype=jnp.int32))
     return img.reshape(H, W, C), bad, stats
 
@@ -451,9 +460,9 @@ def _with_room(scene: Scene, cfg: RenderConfig, keys) -> RenderConfig:
         stats = [_whole_pass(scene, k, cfg, i)[2] for i, k in enumerate(keys)]
         if not any(bool(s.merge_overflow) for s in stats):
             return cfg
-        need = max(int(s.merge_candidates) for s in stats)
-        cap = max(2 * cfg.merge_capacity, 1 << max(need - 1, 1).bit_length())
-        cfg = dataclasses.replace(cfg, merge_capacity=cap)
+        cfg = merge.more_room(cfg, max(int(s.merge_candidates) for s in stats),
+                              any(bool(s.photon_overflow) for s in stats),
+                              max(int(s.merge_photons) for s in stats))
 
 
 def _stage_program(stage: Stage, cfg: RenderConfig):

@@ -20,6 +20,7 @@ grid is built for the larger one and each pair is accepted with its own kind's r
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -29,6 +30,7 @@ import numpy as np
 from jaxtyping import Array
 
 from . import _hashgrid as hashgrid
+from . import _queue as queue
 from . import _subpath as subpath
 from . import _vec as vec
 from ._config import RenderConfig
@@ -98,10 +100,115 @@ def _one_scattering_event(scene: Scene, medium):
     return jnp.where(medium[:, None], inv[None, :], 1.0)
 
 
+PHOTON_FRACTION = 0.25  # default photon room: this share of the light-vertex slots,
+PHOTON_PER_PATH = 0.5  # ... at least this many per light path (max depth 2: one row),
+PHOTON_MIN_ROOM = 4096  # ... and at least this many (smaller passes keep every slot)
+
+
+def photon_room(cfg: RenderConfig, slots: int) -> int:
+    """Static number of photons the hash grid holds for `slots` light-vertex slots
+    ([max(D - 1, 1), paths] flattened): `cfg.photon_capacity` if set, else
+    PHOTON_FRACTION of the slots and PHOTON_PER_PATH per path, whichever is more, rounded
+    up to a multiple of 1024 and at least PHOTON_MIN_ROOM; never more than the slots (then
+    nothing is compacted). Valid photons measured at depth 8, 48x48, two keys (pool also
+    256x256: 6.6 %): pool 6.2-6.3 %, pool_sun 7.4-8.0 %, pool_sky 6.4-6.6 %, pool_wall
+    9.5-9.7 %, cornell_sun 9 %, cornell_background 6 % of the slots (the default room has
+    2.5x margin or more there); cornell, cornell_point and cornell_spheres 36-38 % (closed
+    lit walls: they overflow once, and the host re-run gives them room)."""
+    if cfg.photon_capacity:
+        room = int(cfg.photon_capacity)
+    else:
+        paths = slots // max(cfg.max_depth - 1, 1)
+        want = max(slots * PHOTON_FRACTION, paths * PHOTON_PER_PATH)
+        room = max(PHOTON_MIN_ROOM, -(-int(math.ceil(want)) // 1024) * 1024)
+    return min(room, slots)
+
+
+def more_room(cfg: RenderConfig, need=None, photon_overflow=None, photons=None) -> RenderConfig:
+    """Host side: the config of the re-run after a merging overflow (jax-md's
+    re-allocation pattern; never truncate). Candidates: the power of two that holds the
+    longest candidate list `need`, at least twice the old capacity (with `need` None: twice
+    the old one, always). Photons (flagged by `photon_overflow`; None: inferred, the
+    candidates had room): at least twice the old room and a power of two with a quarter
+    more than the valid `photons` (the next passes' counts scatter around it); with no
+    count, every light-vertex slot. The photon room is a power of two so that the re-run
+    programs stay few; one re-run is enough for the pass that overflowed."""
+    cand = need is None or need > cfg.merge_capacity
+    if photon_overflow is None:
+        photon_overflow = not cand
+    if cand:
+        cap = 2 * cfg.merge_capacity
+        if need is not None:
+            cap = max(cap, 1 << max(need - 1, 1).bit_length())
+        cfg = dataclasses.replace(cfg, merge_capacity=cap)
+    if photon_overflow:
+        if photons is None:
+            room = 2**30  # more than any pass has slots: no compaction
+        else:
+            want = photons + photons // 4
+            room = max(2 * cfg.photon_capacity, 1 << max(want - 1, 1).bit_length())
+        cfg = dataclasses.replace(cfg, photon_capacity=room)
+    return cfg
+
+
+class Photons(NamedTuple):
+    """The hash grid over the valid photons, compacted into `photon_room` slots.
+
+    grid:     `hashgrid.HashGrid` over the compacted photons.
+    slot:     [room] int32 compacted photon -> its light-vertex slot (clamped in range;
+              None: no compaction, the grid holds every slot).
+    count:    valid photons (the room that would have been enough).
+    overflow: more valid photons than room (some are missing: the host re-runs the pass).
+    """
+
+    grid: hashgrid.HashGrid
+    slot: Array | None
+    count: Array
+    overflow: Array
+
+
+def photon_grid(cfg: RenderConfig, p: Vec3, valid, radius: Radii, dtype) -> Photons:
+    """Hash grid of the photons `p` ([M] light-vertex slots) where `valid` holds. Only the
+    valid ones are built: they are gathered in slot order into a static room
+    (`photon_room`, `_queue.compact`), so the sort, hashes and bucket counts run over the
+    room instead of every slot. The table size and the in-bucket order (slot order) are
+    those of the uncompacted grid, so every query meets the same candidates in the same
+    order (the same sums, bit for bit) as long as nothing overflows."""
+    M = p.x.shape[0]
+    table = 1 << max(4, int(math.ceil(math.log2(max(M, 16)))))
+    room = photon_room(cfg, M)
+    r = _search_radius(radius)
+    if room >= M:
+        grid = hashgrid.build(p.x, p.y, p.z, valid, r, table_size=table, dtype=dtype)
+        return Photons(grid, None, jnp.sum(valid, dtype=jnp.int32), jnp.zeros((), bool))
+    idx, count, overflow = queue.compact(valid, room)
+    slot = jnp.minimum(idx, M - 1)
+    grid = hashgrid.build(p.x[slot], p.y[slot], p.z[slot],
+                          jnp.arange(room, dtype=jnp.int32) < count, r, table_size=table,
+                          dtype=dtype)
+    return Photons(grid, slot, count, overflow)
+
+
+def _photon_slots(ph: Photons, fn):
+    """`fn(qi, pj, d2)` of light-vertex slots pj, as a kernel over the grid's photons."""
+    if ph.slot is None:
+        return fn
+    return lambda qi, pj, d2: fn(qi, ph.slot[pj], d2)
+
+
+class Merged(NamedTuple):
+    """What a merging stage reports besides its estimate (all sticky scalars)."""
+
+    overflow: Array  # something is missing (candidates or photons): re-run with room
+    need: Array  # longest candidate list of a gather point
+    photons: Array  # valid photons (the photon room that would have been enough)
+    photon_overflow: Array  # more valid photons than photon room
+
+
 def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpath.Vertex,
                   lig: PathEnds, radius):
-    """PPM estimate per camera lane [N, C], the grid's overflow flag and the longest
-    candidate list of any gather point (the capacity that would have been enough)."""
+    """PPM estimate per camera lane [N, C] and the gather's `Merged` report (overflow
+    flags, the longest candidate list of any gather point, the valid photons)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
@@ -117,9 +224,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
     pdisp = flat(lig.disp)
     pdepth = jnp.repeat(jnp.asarray(idx, jnp.int32), N)
     pvalid = flat(lig.alive) & ~flat(lig.delta)
-    M = pp.x.shape[0]
-    table = 1 << max(4, int(math.ceil(math.log2(max(M, 16)))))
-    grid = hashgrid.build(pp.x, pp.y, pp.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
+    ph = photon_grid(cfg, pp, pvalid, radius, dt)
 
     # ---- gather vertex: the first non-delta camera vertex ----
     nd = cam.alive[1:] & ~cam.delta[1:]  # [D, N] for z_1..z_D
@@ -150,10 +255,12 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
         f = f * both_dispersed(C, zdisp[qi], pdisp[pj]).astype(f.dtype)
         return jnp.where(ok[:, None], f * pbeta[pj], 0.0)
 
-    total, overflow, need = hashgrid.query_reduce(grid, zp.x, zp.y, zp.z, kernel,
+    total, overflow, need = hashgrid.query_reduce(ph.grid, zp.x, zp.y, zp.z,
+                                                  _photon_slots(ph, kernel),
                                                   _search_radius(radius),
                                                   max_candidates=cfg.merge_capacity,
-                                                  return_need=True)
+                                                  return_need=True, valid=has)
+    rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow)
     est = zbeta * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(has[:, None], est, 0.0)
     # ---- emission along the delta prefix and at the gather vertex (weight 1) ----
@@ -161,7 +268,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
     prefix = jj <= jnp.where(has, j, D)[None]
     Le = jnp.sum(jnp.where((prefix & cverts.alive)[..., None], cam.beta[1:] * cverts.Le, 0.0),
                  axis=0)
-    return est + Le, overflow, need
+    return est + Le, rep
 
 
 # ---------------------------------------------------------------- bpm / vcm: merging with MIS
@@ -173,8 +280,8 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
     `parts`: the subpaths' (light, camera) MIS partials (`_mis_partial`) or carried records
     (`_mis_recursive`, `_path.mis_join`): each candidate then gathers O(1) entries; None: each assembles its full path (`_path.weight`).
-    Returns ([D-1, N, C]: per gather vertex z_j and camera lane, overflow, longest candidate
-    list); `by_photon` (static, for per-technique images): [D-1, N, I, C], split by the
+    Returns ([D-1, N, C]: per gather vertex z_j and camera lane, the `Merged` report);
+    `by_photon` (static, for per-technique images): [D-1, N, I, C], split by the
     photon's index i = 1..I as well (the gather's sums D-1 times as wide)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
@@ -187,13 +294,9 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     flat = lambda a, idx: a[idx].reshape((-1,) + a.shape[2:])  # noqa: E731
     pvalid = flat(lig.alive, li) & ~flat(lig.delta, li)
     py = Vec3(*(flat(c, li) for c in lig.p))
-    table = 1 << max(4, int(math.ceil(math.log2(max(py.x.shape[0], 16)))))
-    grid = hashgrid.build(py.x, py.y, py.z, pvalid, _search_radius(radius), table_size=table, dtype=dt)
+    ph = photon_grid(cfg, py, pvalid, radius, dt)
     zq = Vec3(*(flat(c, ci) for c in cam.p))
-    zvalid = flat(cam.alive, ci) & ~flat(cam.delta, ci)
-    # queries of dead / delta camera vertices are moved far away (no neighbours)
-    far = jnp.asarray(1e30, dt)
-    zq = Vec3(*(jnp.where(zvalid, c, far) for c in zq))
+    zvalid = flat(cam.alive, ci) & ~flat(cam.delta, ci)  # dead / delta: no look-up
     lig_pdfs = pdfs(lig)
     cam_pdfs = pdfs(cam)
 
@@ -243,17 +346,19 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
             val = jnp.where((ip[:, None] == rows[None, :])[:, :, None], val[:, None, :], 0.0)
         return val
 
-    total, overflow, need = hashgrid.query_reduce(grid, zq.x, zq.y, zq.z, kernel,
+    total, overflow, need = hashgrid.query_reduce(ph.grid, zq.x, zq.y, zq.z,
+                                                  _photon_slots(ph, kernel),
                                                   _search_radius(radius),
                                                   max_candidates=cfg.merge_capacity,
-                                                  return_need=True)
+                                                  return_need=True, valid=zvalid)
+    rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow)
     zmed = flat(cam.medium, ci)
     if by_photon:  # the same arithmetic per photon row
         est = (flat(cam.beta, ci)[:, None, :] * total
                / (kernel_size(zmed, radius) * N)[:, None, None])
         est = jnp.where(zvalid[:, None, None], est, 0.0)
-        return est.reshape((len(ci), N) + total.shape[1:]), overflow, need
+        return est.reshape((len(ci), N) + total.shape[1:]), rep
     est = flat(cam.beta, ci) * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(zvalid[:, None], est, 0.0).reshape(len(ci), N, -1)
-    return est, overflow, need
+    return est, rep
 

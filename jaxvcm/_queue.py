@@ -105,3 +105,15 @@ class Packed:
         d = str(self.meta[leaf][0])
         col = sum(int(np.prod(m[1], dtype=np.int64)) for m in self.meta[:leaf] if str(m[0]) == d)
         return d, col
+
+
+def compact(mask, capacity: int):
+    """The items where `mask` holds, gathered into a static capacity: ([capacity] int32
+    indices into the flattened mask, in order, padded with mask.size; the number of such
+    items; overflow: more than `capacity` of them, so the ones after the first `capacity`
+    are missing). The caller ORs `overflow` into its sticky diagnostics and the host
+    re-runs with room for the count (`_render.with_retry`): nothing is dropped silently."""
+    m = jnp.reshape(mask, (-1,))
+    count = jnp.sum(m, dtype=jnp.int32)
+    idx = jnp.nonzero(m, size=capacity, fill_value=m.size)[0].astype(jnp.int32)
+    return idx, count, count > capacity

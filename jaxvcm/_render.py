@@ -17,6 +17,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from . import _devices, _hosts, _io, _memory, _warm
+from . import _merge
 from ._version import __version__
 from ._config import RenderConfig
 from ._integrator import Technique, TechniqueImages, integrate, technique_images
@@ -31,8 +32,10 @@ class Diagnostics(eqx.Module):
     light_paths: Int[Array, ""]  # light subpaths traced
     camera_vertices: Int[Array, ""]  # camera subpath vertices that existed
     light_vertices: Int[Array, ""]  # light subpath vertices that existed
-    merge_overflow: Array  # the hash-grid gather ran out of candidate capacity (re-run!)
+    merge_overflow: Array  # merging ran out of candidate or photon room (re-run!)
     merge_candidates: Array  # longest candidate list of a gather point: the room needed
+    photon_overflow: Array  # more valid photons than the hash grid's photon room
+    merge_photons: Array  # valid photons (of the largest chunk): the photon room needed
 
 
 def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig(),
@@ -53,6 +56,8 @@ def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderCo
         light_vertices=stats.light_vertices,
         merge_overflow=stats.merge_overflow,
         merge_candidates=stats.merge_candidates,
+        photon_overflow=stats.photon_overflow,
+        merge_photons=stats.merge_photons,
     )
     return img, diag
 
@@ -63,22 +68,25 @@ def _render_pass_jit(scene, key, config, pass_index=0):
 
 
 def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overflow_of,
-               need_of=None):
-    """Host side: run `jitted_pass(scene, key, config, pass_index)`; if the merging gather
-    overflowed its static capacity (`overflow_of(diagnostics)`), re-run the same pass (same
-    key) with more room (jax-md's re-allocation pattern); never truncate. The room is the
-    power of two that holds the longest candidate list the pass reported (`need_of`), at
-    least twice the old one, so one re-run (one new compiled program) is enough. Returns
-    (estimate, diagnostics, the config that had room)."""
+               need_of=None, photons_of=None):
+    """Host side: run `jitted_pass(scene, key, config, pass_index)`; if merging overflowed a
+    static capacity (`overflow_of(diagnostics)`), re-run the same pass (same key) with more
+    room (jax-md's re-allocation pattern); never truncate. The candidate room is the power
+    of two that holds the longest candidate list the pass reported (`need_of`), at least
+    twice the old one; the photon room (`photons_of(diagnostics)` = (photon overflow, valid
+    photons)) at least doubles and holds the photons with a margin (`_merge.more_room`), so
+    one re-run (one new compiled program) is enough. Returns (estimate, diagnostics, the
+    config that had room)."""
     while True:
         est, diag = jitted_pass(scene, key, config, pass_index)
         if not bool(np.any(overflow_of(diag))):
             return est, diag, config
-        cap = 2 * config.merge_capacity
-        if need_of is not None:
-            need = int(np.max(np.asarray(need_of(diag))))
-            cap = max(cap, 1 << max(need - 1, 1).bit_length())
-        config = dataclasses.replace(config, merge_capacity=cap)
+        need = None if need_of is None else int(np.max(np.asarray(need_of(diag))))
+        p_over = photons = None
+        if photons_of is not None:
+            p_over, photons = photons_of(diag)
+            p_over, photons = bool(np.any(p_over)), int(np.max(np.asarray(photons)))
+        config = _merge.more_room(config, need, p_over, photons)
 
 
 def _host_pass(scene, key, config, pass_index=0):
@@ -92,7 +100,8 @@ def render_pass_host(scene, key, config, pass_index=0):
     """`render_pass` (jitted, or exported for warm starts: `_warm`) with the
     merge-capacity re-run of `with_retry`."""
     return with_retry(_host_pass, scene, key, config, pass_index,
-                      lambda d: d.merge_overflow, lambda d: d.merge_candidates)
+                      lambda d: d.merge_overflow, lambda d: d.merge_candidates,
+                      lambda d: (d.photon_overflow, d.merge_photons))
 
 
 def pass_key(seed: int, index: int) -> PRNGKeyArray:
@@ -273,7 +282,8 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
         valid = np.arange(G) < n
         sums, diag, state["config"] = with_retry(
             lambda s, k, c, p: dsum.run(k, p, valid, c), scene, keys, state["config"], idx,
-            lambda d: d.merge_overflow & valid, lambda d: d.merge_candidates)
+            lambda d: d.merge_overflow & valid, lambda d: d.merge_candidates,
+            lambda d: (d.photon_overflow & valid, d.merge_photons))
         dsum.add(sums)
         return n, int(np.sum(np.asarray(diag.nonfinite)[valid]))
 
@@ -328,7 +338,8 @@ def _render_techniques(scene, config, passes, time, seed, snapshot_every, out, p
     def run_pass(i):
         tech, (bad, _), state["config"] = with_retry(
             _technique_pass, scene, pass_key(seed, i), state["config"], i,
-            lambda d: d[1].merge_overflow, lambda d: d[1].merge_candidates)
+            lambda d: d[1].merge_overflow, lambda d: d[1].merge_candidates,
+            lambda d: (d[1].photon_overflow, d[1].merge_photons))
         state["labels"] = tech.labels
         return tech.images, bad
 
@@ -388,8 +399,9 @@ def _read_resume(out, scene, scene_path, config, seed):
         if meta.get(k) != want[k]:
             raise ValueError(f"resume: {out} was rendered with {k} = {meta.get(k)!r}, "
                              f"this render has {want[k]!r}")
-    had = {k: v for k, v in meta["config"].items() if k != "merge_capacity"}
-    now = {k: v for k, v in want["config"].items() if k != "merge_capacity"}
+    room = ("merge_capacity", "photon_capacity")  # grown by re-runs: not the samples
+    had = {k: v for k, v in meta["config"].items() if k not in room}
+    now = {k: v for k, v in want["config"].items() if k not in room}
     if had != now:
         diff = sorted(k for k in set(had) | set(now) if had.get(k) != now.get(k))
         raise ValueError(f"resume: {out} was rendered with another config ({', '.join(diff)})")

@@ -403,3 +403,28 @@ def test_property_matches_brute_force(pts, qs, r, table_size, dt):
     grid = build(*P, V, dt(r), table_size=table_size)
     idx, count, overflow = query(grid, *Q, max_neighbours=48)
     check(idx, count, overflow, brute(P, V, Q, dt(r)), 48)
+
+
+@pytest.mark.parametrize("chunk, sort_queries", [(32, True), (100, False), (256, True)],
+                         ids=lambda v: f"chunk{v}" if not isinstance(v, bool) else
+                         ("sorted" if v else "unsorted"))
+def test_query_reduce_valid_mask_keeps_every_sum_bit_for_bit(chunk, sort_queries):
+    # queries with valid False get zero sums without a look-up (a chunk of them only is
+    # skipped: sorted, they are the last lanes); every other query's sum is bit for bit the
+    # one of the unmasked reduction (a lane adds its own pairs in candidate order, so the
+    # lanes' order, their chunks and the invalid neighbours change nothing)
+    P, V, Q, r = uniform(np.float32)
+    grid = build(*P, V, r, table_size=4096)
+    rng = np.random.default_rng(8)
+    wj = jnp.asarray(rng.random(M_SLOTS))
+    r2 = jnp.float64(r) ** 2
+    fn = lambda qi, pj, d2: (wj[pj] * (1 - d2 / r2), jnp.ones_like(d2))  # noqa: E731
+    (ref, ones), _ = reduce_(grid, *Q, fn, sort_queries=False)
+    assert np.sum(np.asarray(ones) > 0) > Q_SLOTS // 2
+    for mask in (rng.random(Q_SLOTS) < 0.3, np.arange(Q_SLOTS) < 40, np.zeros(Q_SLOTS, bool)):
+        (got, n), _ = reduce_(grid, *Q, fn, chunk=chunk, sort_queries=sort_queries,
+                              valid=jnp.asarray(mask))
+        got, n = np.asarray(got), np.asarray(n)
+        np.testing.assert_array_equal(got[mask], np.asarray(ref)[mask])
+        np.testing.assert_array_equal(n, np.where(mask, ones, 0))
+        assert np.all(got[~mask] == 0)

@@ -91,6 +91,31 @@ def test_merge_overflow_flag_and_host_rerun_is_exact():
     assert not np.allclose(np.asarray(img_s), np.asarray(img_b))
 
 
+def test_photon_overflow_flag_and_host_rerun_is_exact():
+    # the hash grid holds only the valid photons (light vertices alive and not delta),
+    # compacted into a static room: too small a room sets the sticky flag, the host re-runs
+    # the same pass with room for every photon, and that is the image of an ample room bit
+    # for bit (same candidates in the same order: nothing is silently dropped)
+    sc = scene(8, 8)
+    key = jax.random.key(5)
+    small = RenderConfig(algorithm="vcm", max_depth=4, radius=0.2, photon_capacity=2)
+    img_s, diag_s = _render_pass_jit(sc, key, small, 0)
+    n = int(diag_s.merge_photons)  # the pass counts every valid photon, kept or not
+    assert n > 2 and bool(diag_s.photon_overflow) and bool(diag_s.merge_overflow)
+    img_h, diag_h, used = render_pass_host(sc, key, small, 0)
+    assert not bool(diag_h.merge_overflow) and not bool(diag_h.photon_overflow)
+    # one re-run: a power of two holding the photons (with a quarter more); the candidate
+    # capacity had room and is unchanged
+    assert used.photon_capacity == 1 << (n + n // 4 - 1).bit_length()
+    assert used.merge_capacity == small.merge_capacity and int(diag_h.merge_photons) == n
+    # the default room here is every light-vertex slot (no compaction at all)
+    big = dataclasses.replace(small, photon_capacity=0)
+    img_b, diag_b = _render_pass_jit(sc, key, big, 0)
+    assert not bool(diag_b.merge_overflow) and int(diag_b.merge_photons) == n
+    np.testing.assert_array_equal(np.asarray(img_h), np.asarray(img_b))
+    assert not np.allclose(np.asarray(img_s), np.asarray(img_b))
+
+
 @pytest.mark.parametrize("alg", ["ppm", "vcm"])
 @pytest.mark.parametrize("r", [1e-6, 0.5])
 def test_merging_extreme_radii_are_finite(r, alg):
