@@ -37,6 +37,10 @@ RTOL = 1e-5
 CHILD = r"""
 import json, os, sys
 import numpy as np, jax
+# the persistent cache configured as the parent's harness does (tests/conftest.py), so the
+# CLI below runs the same jitted passes as the renders before it instead of exporting and
+# compiling its own (exported warm starts: tests/test_warm.py)
+jax.config.update("jax_compilation_cache_dir", os.environ["JAXVCM_CACHE_DIR"])
 import jaxvcm
 from jaxvcm.cli import main
 assert len(jax.local_devices()) == 4, jax.local_devices()
