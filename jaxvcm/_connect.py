@@ -131,7 +131,7 @@ def emitter_hit_join_pdfs(scene: Scene, z, zp, light, escaped) -> JoinPdfs:
     (emission pdf) -> area at z_{j-1} (from the sky: per perpendicular area, the cosine
     alone). No light vertex: B_s1 = B_s2 = 1 (never read)."""
     A_s = lights.light_point_pdf(scene, light, z.p)
-    pe = lights.emission_pdf_dir(scene, light, z.n, z.wo)
+    pe = lights.emission_pdf_dir(scene, light, z.n, z.wo, zp.p)  # sky: the line through z_{j-1}
     dv = zp.p - z.p
     d = vec.length(dv)
     a_area = pe * subpath.to_area(1.0, zp.medium, zp.n, dv / jnp.maximum(d, 1e-30), d,
@@ -154,7 +154,7 @@ def nee_join_pdfs(scene: Scene, z, zp, ls: lights.LightSample, wseg):
     inf = ~jnp.isfinite(ls.dist)
     dist = jnp.where(inf, 0.0, ls.dist)
     A0 = lights.light_point_pdf(scene, ls.light, ls.wi)
-    pe = lights.emission_pdf_dir(scene, ls.light, ls.n, -ls.wi)
+    pe = lights.emission_pdf_dir(scene, ls.light, ls.n, -ls.wi, z.p)  # the line through z_j
     cos_z = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, ls.wi)))
     g = jnp.where(inf, cos_z, cos_z / jnp.maximum(dist * dist, 1e-30))
     A_s = pe * g * subpath.dist_pdf(water, wseg, z.medium, ls.dist)  # A(z_j)

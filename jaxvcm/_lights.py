@@ -211,10 +211,64 @@ class Emission(NamedTuple):
     delta: Array  # delta light (sun, point)
 
 
-def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
-    """Pdf of the emission direction w (leaving y_0) for light `light` with normal n: solid
-    angle for area lights and point lights (1 / (4 pi)); at infinity the perpendicular-area
-    pdf 1/(pi R^2)."""
+def aim_fraction(scene: Scene, k: int) -> float:
+    """Static fraction of light k's photons aimed at the water's footprint (0: none)."""
+    aim = scene.lights.aim
+    return float(aim[k]) if k < len(aim) else 0.0
+
+
+def aimed_pdf(scene: Scene, d: Vec3, p: Vec3):
+    """Perpendicular-area pdf of the aimed part of an infinite light's emission (issue 13):
+    the line of direction d (the way light travels) through p crosses the water's plane
+    y = level at c; the aimed photons cross it in the footprint [x0, x1] x [z0, z1], in cell
+    (i, j) of the [G, G] `aim_map` with probability w_ij / sum w, uniformly inside the cell:
+    density G^2 w_ij / (sum w A_F) per unit area of the plane, and per unit area
+    perpendicular to d divided by |d_y| (the plane's projected area element). 0 where c
+    lies outside the footprint or d is parallel to the plane."""
+    wat = scene.water
+    dt = d.x.dtype
+    w = jax.lax.stop_gradient(scene.lights.aim_map).astype(dt)
+    G = w.shape[0]
+    x0, x1, z0, z1 = (wat.footprint[i].astype(dt) for i in range(4))
+    ok_y = jnp.abs(d.y) > 1e-7
+    dy = jnp.where(ok_y, d.y, -1.0)
+    s = (wat.level.astype(dt) - p.y) / dy
+    u = (p.x + d.x * s - x0) / (x1 - x0)
+    v = (p.z + d.z * s - z0) / (z1 - z0)
+    inside = ok_y & (u >= 0) & (u < 1) & (v >= 0) & (v < 1)
+    j = jnp.clip(jnp.floor(u * G), 0, G - 1).astype(jnp.int32)
+    i = jnp.clip(jnp.floor(v * G), 0, G - 1).astype(jnp.int32)
+    area = (x1 - x0) * (z1 - z0)
+    dens = w[i, j] * (G * G) / (jnp.sum(w) * area * jnp.abs(dy))
+    return jnp.where(inside, dens, 0.0)
+
+
+def _aimed_origin(scene: Scene, d: Vec3, u1, u2):
+    """A point c on the water's plane in the footprint, drawn from `aim_map` (cell by u1,
+    remapped, then uniform in the cell by the rest of u1 and u2): `aimed_pdf`'s density."""
+    wat = scene.water
+    dt = u1.dtype
+    w = jax.lax.stop_gradient(scene.lights.aim_map).astype(dt).reshape(-1)
+    G = scene.lights.aim_map.shape[0]
+    cdf = jnp.cumsum(w)
+    total = cdf[-1]
+    idx = jnp.minimum(jnp.sum(cdf <= u1 * total).astype(jnp.int32), G * G - 1)
+    lo = jnp.where(idx > 0, cdf[jnp.maximum(idx - 1, 0)], 0.0)
+    ur = jnp.clip((u1 * total - lo) / jnp.maximum(w[idx], 1e-30), 0.0, 1.0 - 1e-6)
+    i, j = idx // G, idx % G
+    x0, x1, z0, z1 = (wat.footprint[k].astype(dt) for k in range(4))
+    x = x0 + (x1 - x0) * (j.astype(dt) + ur) / G
+    z = z0 + (z1 - z0) * (i.astype(dt) + u2) / G
+    return Vec3(x, wat.level.astype(dt) * jnp.ones((), dt), z)
+
+
+def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3, p: Vec3 | None = None):
+    """Pdf of the emission direction w (leaving y_0, the way light travels) for light
+    `light` with normal n: solid angle for area lights and point lights (1 / (4 pi)); at
+    infinity the perpendicular-area pdf of the line of direction w through the point p:
+    1/(pi R^2) on the bounding disk, mixed with `aimed_pdf` for an aimed light (p needed
+    then; the mixture is the density the emission samples, so every technique's MIS sees
+    the same pdf)."""
     lights = scene.lights
     _, rb = bounding_sphere(scene)
     dt = n.x.dtype
@@ -229,6 +283,11 @@ def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3):
             pk = jnp.asarray(0.25 / jnp.pi, dt)
         else:
             pk = jnp.ones((), dt) / (jnp.pi * rb * rb)
+            P = aim_fraction(scene, k)
+            if P > 0:
+                if p is None:
+                    raise ValueError("emission_pdf_dir: an aimed light needs the point p")
+                pk = (1.0 - P) * pk + P * aimed_pdf(scene, w, p)
         pdf = jnp.where(light == k, pk, pdf)
     return jax.lax.stop_gradient(pdf)
 
@@ -342,9 +401,23 @@ def sample_emission(scene: Scene, u) -> Emission:
                 delta = jnp.zeros((), bool)
             t1, t2 = vec.onb(d)
             o = cb - d * (rb * 1.01) + (t1 * dx + t2 * dy) * rb
-            pdf_disk = 1.0 / (jnp.pi * rb * rb)
+            pdf_disk = 1.0 / (jnp.pi * rb * rb) * jnp.ones((), dt)
+            P = aim_fraction(scene, k)
+            if P > 0:
+                # ---- aimed: with probability P (u[3] < P, remapped) the line crosses the
+                # water's plane at a point drawn from the footprint's map; it starts
+                # outside the bounding sphere (1.01 R behind its centre along d) ----
+                aimed = u[3] < P
+                ua = jnp.clip(u[3] / P, 0.0, 1.0 - 1e-6)
+                ub = jnp.clip((u[3] - P) / (1.0 - P), 0.0, 1.0 - 1e-6)
+                dx2, dy2 = sampling.concentric_disk(ub, u[4])
+                o_disk = cb - d * (rb * 1.01) + (t1 * dx2 + t2 * dy2) * rb
+                c = _aimed_origin(scene, d, ua, u[4])
+                o_aim = c - d * (vec.dot(c - cb, d) + rb * 1.01)
+                o = vec.where(aimed, o_aim, o_disk)
+                pdf_disk = (1.0 - P) * pdf_disk + P * aimed_pdf(scene, d, o)
             e = Emission(o, -d, o, d, jnp.zeros((C,), dt), Le / (pdf_pos * pdf_disk), pdf_pos,
-                         pdf_disk * jnp.ones((), dt), jnp.asarray(k, jnp.int32),
+                         pdf_disk, jnp.asarray(k, jnp.int32),
                          jnp.ones((), bool), delta)
         pick = li == k
         out = jax.tree.map(lambda a, b: jnp.where(pick, a, b), e, out)

@@ -141,6 +141,13 @@ class Lights(eqx.Module):
     direction: Float[Array, "L 3"]  # sun: unit direction light travels; zeros otherwise
     power_weight: Float[Array, "L"]  # unnormalised light-selection weights (see _lights)
     position: Float[Array, "L 3"]  # point lights: the position; zeros otherwise
+    # Aimed emission (issue 13, `_lights.aimed_pdf`): per light, the fraction of its photons
+    # aimed at the water's footprint (sun and sky only; the rest start on the scene's
+    # bounding disk as before). () or all 0: no aiming (not in the compiled program).
+    aim: tuple[float, ...] = eqx.field(static=True, default=())
+    # [G, G] non-negative weights of the footprint's cells (rows z, columns x) that the aimed
+    # photons follow; a 1 x 1 map: uniform over the footprint. A sampling decision: detached.
+    aim_map: Float[Array, "G G"] | None = None
 
     @property
     def count(self) -> int:

@@ -24,8 +24,13 @@ Schema (metres, y up; "spectrum" = a number or a list of C numbers):
             footprint = [xmin, xmax, zmin, zmax], floor   (default: the basin's interior)
   [[lights]] type = "rect":   center, normal (the side it emits to), size, radiance, up
   [[lights]] type = "sphere": center, radius, radiance                (emits both ways)
-  [[lights]] type = "sun":    direction (the way light travels), irradiance
-  [[lights]] type = "sky":    radiance                   (directions with y > 0 only)
+  [[lights]] type = "sun":    direction (the way light travels), irradiance, aim
+  [[lights]] type = "sky":    radiance, aim              (directions with y > 0 only)
+             aim = 0 (default) .. < 1: the fraction of the light's photons aimed at the
+             water's footprint (the caustic caster) instead of the scene's bounding disk;
+             the rest still cover the scene, and every technique's MIS uses the mixture
+             pdf (`_lights.aimed_pdf`), so images are unbiased either way (needs [water];
+             an aimed sun must shine downwards)
   [[lights]] type = "point":  position, intensity (W/sr)  (isotropic, delta position)
   [[lights]] type = "background": radiance               (every direction; SmallVCM's
                                                           background; at most one of
@@ -153,6 +158,9 @@ def scene_from_dict(doc: dict, src: str = "<scene>", *, width=None, height=None,
             parse_shapes(ctx, doc.get("shapes", []), parts)
             parse_lights(ctx, doc["lights"], parts)
             water = parse_water(ctx, doc.get("water"), parts)
+            for field, a in parts.l_aim:
+                if a > 0 and not water["enabled"]:
+                    ctx.fail(field, "aims at the water's footprint: the scene has no [water]")
             bounds = _bounds(cam["pos"], parts, water)
             _check_sizes(ctx, parts, bounds)
             power = _light_power(parts, bounds)
@@ -245,6 +253,9 @@ def _to_scene(cam: dict, p: _Parts, water: dict, bounds, power, name: str, dtype
     wat = Water(w["enabled"], w["phase"], A(w["level"]), A(wv[:, 0]), A(wv[:, 1]), A(wv[:, 2]),
                 A(wv[:, 3]), A(w["fp"]), A(w["floor"]), A(w["sig_a"]), A(w["sig_s"]), A(w["g"]),
                 A(w["b"]), A(w["ior"]), w["mat"])
+    aim = tuple(a for _, a in p.l_aim)
+    aimed = any(a > 0 for a in aim)
     lights = Lights(tuple(p.l_kind), tuple(p.l_shape), A(np.array(p.l_rad)), arr3(p.l_dir),
-                    A(power), arr3(p.l_pos))
+                    A(power), arr3(p.l_pos), aim if aimed else (),
+                    A(np.ones((1, 1))) if aimed else None)
     return Scene(camera, materials, rects, spheres, wat, lights, A(bounds), name)

@@ -72,6 +72,7 @@ class _Parts:
     l_rad: list = dataclasses.field(default_factory=list)
     l_dir: list = dataclasses.field(default_factory=list)
     l_pos: list = dataclasses.field(default_factory=list)
+    l_aim: list = dataclasses.field(default_factory=list)  # (field, fraction) per light
     basin: tuple | None = None  # (min, max) of the last basin
     sizes: list = dataclasses.field(default_factory=list)  # (field, smallest side or radius)
 
@@ -310,15 +311,34 @@ def _sphere_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
     return LIGHT_SPHERE, len(parts.sph_c) - 1, rad, np.zeros(3)
 
 
+def _aim(ctx: _Ctx, l: dict, f: str) -> float:
+    """`aim`: the fraction of the light's photons aimed at the water's footprint (issue
+    13; 0 <= aim < 1: the rest start on the scene's bounding disk, so light that never
+    meets the water is still emitted)."""
+    a = ctx.number(l.get("aim", 0.0), f + ".aim", nonneg=True)
+    if a >= 1.0:
+        ctx.fail(f + ".aim", "must be below 1 (the rest of the photons cover the scene)")
+    return a
+
+
 def _sun_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
-    ctx.table(l, {"type", "direction", "irradiance"}, {"direction", "irradiance"}, f)
+    ctx.table(l, {"type", "direction", "irradiance", "aim"}, {"direction", "irradiance"}, f)
     dvec = ctx.unit(l["direction"], f + ".direction")
     rad = ctx.spectrum(l["irradiance"], f + ".irradiance", RADIANCE, positive=True)
+    aim = _aim(ctx, l, f)
+    if aim > 0 and dvec[1] >= 0:
+        ctx.fail(f + ".aim", "an aimed sun must shine downwards (direction y < 0)")
+    parts.l_aim.append((f + ".aim", aim))
     return LIGHT_SUN, -1, rad, dvec
 
 
 def _constant_light(kind: int, ctx: _Ctx, l: dict, f: str, parts: _Parts):
     """Sky (upper hemisphere) and background (every direction): a constant radiance."""
+    if kind == LIGHT_SKY:
+        ctx.table(l, {"type", "radiance", "aim"}, {"radiance"}, f)
+        parts.l_aim.append((f + ".aim", _aim(ctx, l, f)))
+        rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
+        return kind, -1, rad, np.zeros(3)
     ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
     rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
     return kind, -1, rad, np.zeros(3)
@@ -348,7 +368,10 @@ def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
         if kind in ("sky", "background") and any(k in (LIGHT_SKY, LIGHT_BACKGROUND)
                                                   for k in parts.l_kind):
             ctx.fail(f + ".type", "at most one sky or background light per scene")
+        n_aim = len(parts.l_aim)
         k, shape, rad, dvec = _LIGHTS[kind](ctx, l, f, parts)
+        if len(parts.l_aim) == n_aim:
+            parts.l_aim.append((f + ".aim", 0.0))
         parts.l_kind.append(k)
         parts.l_shape.append(shape)
         parts.l_rad.append(rad)
