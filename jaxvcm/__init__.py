@@ -13,6 +13,9 @@ from ._config import TECHNIQUES as TECHNIQUES
 from ._config import RenderConfig as RenderConfig
 from ._config import Techniques as Techniques
 from ._scene import Scene as Scene
+from ._aim import ViewGuide as ViewGuide
+from ._aim import aim_at_view as aim_at_view
+from ._aim import view_guide as view_guide
 
 # ---- the pure pass, its techniques and MIS weights
 from ._integrator import PassStats as PassStats

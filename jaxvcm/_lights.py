@@ -221,15 +221,17 @@ def aimed_pdf(scene: Scene, d: Vec3, p: Vec3):
     """Perpendicular-area pdf of the aimed part of an infinite light's emission (issue 13):
     the line of direction d (the way light travels) through p crosses the water's plane
     y = level at c; the aimed photons cross it in the footprint [x0, x1] x [z0, z1], in cell
-    (i, j) of the [G, G] `aim_map` with probability w_ij / sum w, uniformly inside the cell:
-    density G^2 w_ij / (sum w A_F) per unit area of the plane, and per unit area
-    perpendicular to d divided by |d_y| (the plane's projected area element). 0 where c
-    lies outside the footprint or d is parallel to the plane."""
+    (i, j) of the [G, G] `aim_map` over the rectangle `aim_rect` (the footprint by default)
+    with probability w_ij / sum w, uniformly inside the cell: density G^2 w_ij / (sum w A_F)
+    per unit area of the plane (A_F the rectangle's area), and per unit area perpendicular
+    to d divided by |d_y| (the plane's projected area element). 0 where c lies outside the
+    rectangle or d is parallel to the plane."""
     wat = scene.water
     dt = d.x.dtype
     w = jax.lax.stop_gradient(scene.lights.aim_map).astype(dt)
     G = w.shape[0]
-    x0, x1, z0, z1 = (wat.footprint[i].astype(dt) for i in range(4))
+    rect = jax.lax.stop_gradient(scene.lights.aim_rect)
+    x0, x1, z0, z1 = (rect[i].astype(dt) for i in range(4))
     ok_y = jnp.abs(d.y) > 1e-7
     dy = jnp.where(ok_y, d.y, -1.0)
     s = (wat.level.astype(dt) - p.y) / dy
@@ -256,7 +258,8 @@ def _aimed_origin(scene: Scene, d: Vec3, u1, u2):
     lo = jnp.where(idx > 0, cdf[jnp.maximum(idx - 1, 0)], 0.0)
     ur = jnp.clip((u1 * total - lo) / jnp.maximum(w[idx], 1e-30), 0.0, 1.0 - 1e-6)
     i, j = idx // G, idx % G
-    x0, x1, z0, z1 = (wat.footprint[k].astype(dt) for k in range(4))
+    rect = jax.lax.stop_gradient(scene.lights.aim_rect)
+    x0, x1, z0, z1 = (rect[k].astype(dt) for k in range(4))
     x = x0 + (x1 - x0) * (j.astype(dt) + ur) / G
     z = z0 + (z1 - z0) * (i.astype(dt) + u2) / G
     return Vec3(x, wat.level.astype(dt) * jnp.ones((), dt), z)

@@ -148,6 +148,9 @@ class Lights(eqx.Module):
     # [G, G] non-negative weights of the footprint's cells (rows z, columns x) that the aimed
     # photons follow; a 1 x 1 map: uniform over the footprint. A sampling decision: detached.
     aim_map: Float[Array, "G G"] | None = None
+    # [4] x0, x1, z0, z1: the rectangle of the water's plane the map covers (the footprint,
+    # or the part of it a view needs: `_aim.view_guide`)
+    aim_rect: Float[Array, "4"] | None = None
 
     @property
     def count(self) -> int:

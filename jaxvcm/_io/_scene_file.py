@@ -257,5 +257,5 @@ def _to_scene(cam: dict, p: _Parts, water: dict, bounds, power, name: str, dtype
     aimed = any(a > 0 for a in aim)
     lights = Lights(tuple(p.l_kind), tuple(p.l_shape), A(np.array(p.l_rad)), arr3(p.l_dir),
                     A(power), arr3(p.l_pos), aim if aimed else (),
-                    A(np.ones((1, 1))) if aimed else None)
+                    A(np.ones((1, 1))) if aimed else None, A(w["fp"]) if aimed else None)
     return Scene(camera, materials, rects, spheres, wat, lights, A(bounds), name)
