@@ -166,6 +166,11 @@ def _parser() -> argparse.ArgumentParser:
                         "by path length k and technique (kK_sS_tT: the connection of s light "
                         "and t camera vertices; kK_merge_sS_tT: photon y_(s-1) merged at "
                         "z_(t-1)); their sum is the image; one device, one chunk")
+    r.add_argument("--aim-view", action="store_true",
+                   help="before rendering, a pilot pass of camera paths aims the scene's "
+                        "aimed lights ([[lights]] aim) at the water where the camera looks "
+                        "and sets the first-pass merging radius from the pixel footprint "
+                        "(overrides --radius; jaxvcm.aim_at_view)")
     r.add_argument("--quiet", action="store_true", help="no progress line")
     r.add_argument("--spectral", action="store_true",
                    help="spectral mode (hero wavelengths, CIE XYZ film; jaxvcm.render_spectral): "
@@ -300,6 +305,16 @@ def _cmd_render(a) -> int:
     if a.memory is not None:
         parse_bytes(a.memory)
     scene = jaxvcm.load_scene(a.scene, width=a.width, height=a.height)
+    if a.aim_view:
+        if not any(x > 0 for x in scene.lights.aim):
+            raise ValueError("--aim-view: the scene has no aimed light (set [[lights]] aim)")
+        scene, config, guide = jaxvcm.aim_at_view(scene, config)
+        if not a.quiet:
+            x0, x1, z0, z1 = guide.aim_rect
+            print(f"{PROG}: aimed at {x1 - x0:.3g} m x {z1 - z0:.3g} m of the water "
+                  f"({guide.under_water} of {guide.paths} pilot paths under it); radius "
+                  f"{config.radius:.3g} of the bounding radius ({guide.footprint:.3g} m "
+                  f"pixel footprint)", file=sys.stderr)
     lead = _hosts.is_lead()
     if lead:
         os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)

@@ -301,3 +301,18 @@ def test_view_guided_flat_pool_equals_the_closed_form(alg):
     m, se = x.mean(0), x.std(0, ddof=1) / math.sqrt(len(x))
     assert np.all(se < 0.0125 * want), f"SE {se / want} cannot see 5 % at 4 SE"
     assert np.all(np.abs(m - want) <= K * se + 1e-3 * want), f"{alg}: {m} vs {want} (SE {se})"
+
+
+def test_cli_aim_view(tmp_path, capsys):
+    # scenes/pool_wide.toml (issue 13's wide pool) renders with --aim-view; a scene without
+    # an aimed light is refused in one line with exit status 2
+    from jaxvcm.cli import main
+    out = str(tmp_path / "wide.exr")
+    rc = main(["render", "scenes/pool_wide.toml", "--aim-view", "--passes", "2", "--width",
+               "8", "--height", "8", "--out", out])
+    err = capsys.readouterr().err
+    assert rc == 0 and "aimed at" in err, err
+    assert main(["render", "scenes/pool_sky.toml", "--aim-view", "--passes", "1",
+                 "--out", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--aim-view" in err[0], err
