@@ -15,7 +15,8 @@ same wall time in two modes:
 
 Reported per (width, algorithm, mode): passes, seconds, and the relative error of the
 image mean and the relative RMSE over pixels and channels against the closed form.
-`python -m benchmarks.aim_sweep [--seconds S] [--out docs/benchmarks_aim-sweep.json]`.
+`jaxvcm bench --scale-sweep [--sweep-seconds S]` writes the section 'Aimed emission: scale
+sweep' of docs/benchmarks.md; `python -m benchmarks.aim_sweep` prints the rows.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import jaxvcm
 from jaxvcm import RenderConfig
 from jaxvcm._materials import fresnel_dielectric
 from jaxvcm._render import render_pass_host
+from jaxvcm._scene import bounding_sphere
 
 DEPTH, ALBEDO, ETA, E = 1.2, 0.7, 1.33, 3.0
 SIGMA_A = (0.3, 0.1, 0.05)
@@ -67,8 +69,10 @@ def run(width: float, alg: str, mode: str, seconds: float, seed: int = 0) -> dic
     if mode == "view":
         scene = jaxvcm.scene_from_dict(pool(width, 0.9))
         scene, cfg, guide = jaxvcm.aim_at_view(scene, RenderConfig(algorithm=alg, max_depth=4))
+        x0, x1, z0, z1 = guide.aim_rect
+        G = guide.aim_map.shape[0]
         extra = {"radius": cfg.radius, "footprint_m": guide.footprint,
-                 "aimed_cells": int((guide.aim_map > 0).sum())}
+                 "aimed_area": float((guide.aim_map > 0).sum() * (x1 - x0) * (z1 - z0) / G**2)}
     else:
         scene = jaxvcm.scene_from_dict(pool(width))
         cfg = RenderConfig(algorithm=alg, max_depth=4)
@@ -81,12 +85,68 @@ def run(width: float, alg: str, mode: str, seconds: float, seed: int = 0) -> dic
         total += np.asarray(img, np.float64)
         n += 1
     dt = time.perf_counter() - t0
+    extra["radius_m"] = extra["radius"] * float(bounding_sphere(scene)[1])
     mean = total / n
     ref = expected()
     rel_mean = float(np.max(np.abs(mean.mean(axis=(0, 1)) / ref - 1.0)))
     rel_rmse = float(np.sqrt(np.mean((mean / ref - 1.0) ** 2)))
     return {"width": width, "algorithm": alg, "mode": mode, "passes": n, "seconds": dt,
             "rel_error_mean": rel_mean, "rel_rmse": rel_rmse, **extra}
+
+
+TAG = "aim-sweep"
+
+
+def run_sweep(a, argv, log) -> dict:
+    """`jaxvcm bench --scale-sweep`: every (width, algorithm, mode), one run; the 'Aimed
+    emission: scale sweep' section of --out and <out stem>_aim-sweep.json."""
+    from . import _common as C
+    algs = a.algorithms or ["vcm", "ppm"]
+    seconds = 2.0 if a.quick else a.sweep_seconds
+    res = {"machine": C.machine(), "command": " ".join(["jaxvcm", "bench", *argv]),
+           "seconds": seconds, "expected": expected().tolist(), "rows": []}
+    for w in WIDTHS:
+        for alg in algs:
+            for mode in ("bounds", "view"):
+                r = run(w, alg, mode, seconds, a.seed)
+                res["rows"].append(r)
+                log(f"scale sweep: {w:g} m {alg} {mode}: {r['passes']} passes, relRMSE "
+                    f"{r['rel_rmse']:.3f}")
+    C.publish(a.out, TAG, res, markdown(res), log)
+    return res
+
+
+def markdown(res: dict) -> str:
+    from . import _common as C
+    L = C.section_head("Aimed emission: scale sweep (issue 13)", res) + [
+        f"- The flat sunlit pool of `benchmarks/aim_sweep.py` at widths "
+        f"{', '.join(f'{w:g}' for w in WIDTHS)} m, the same camera (3 m above the centre, "
+        "straight down, 2 degrees, 8x8); max depth 4; each row renders for "
+        f"{res['seconds']:g} s of wall time after a warm-up pass. Errors against the closed "
+        "form: rel. err. of the image mean (worst channel) and relRMSE over pixels and "
+        "channels. *bounds*: photons over the bounding disk, radius 0.005 of the bounding "
+        "radius (today's defaults); *view*: `aim = 0.9`, `jaxvcm.aim_at_view` (map where "
+        "the camera looks, radius = one pixel's footprint).", "",
+        "| width | algorithm | mode | passes | radius (m) | aimed area (m^2) | rel. err. mean "
+        "| relRMSE |", "|---|---|---|---|---|---|---|---|"]
+    for r in res["rows"]:
+        rb = math.sqrt(3 * (0.5 * r["width"]) ** 2)  # not used: radius is given as fraction
+        del rb
+        area = r.get("aimed_area")
+        L.append(f"| {r['width']:g} m | {r['algorithm']} | {r['mode']} | {r['passes']} | "
+                 f"{r['radius_m']:.3g} | {'-' if area is None else f'{area:.3g}'} | "
+                 f"{r['rel_error_mean']:.3f} | {r['rel_rmse']:.3f} |")
+    L.append("")
+    for alg in sorted({r["algorithm"] for r in res["rows"]}):
+        rows = {(r["width"], r["mode"]): r["rel_rmse"] for r in res["rows"]
+                if r["algorithm"] == alg}
+        wl, ws = max(WIDTHS), min(WIDTHS)
+        if (wl, "bounds") in rows and (wl, "view") in rows and (ws, "view") in rows:
+            L.append(f"- {alg}: at {wl:g} m the view-aimed relRMSE is "
+                     f"{rows[(wl, 'bounds')] / rows[(wl, 'view')]:.1f}x lower than the "
+                     f"bounds' (target >= 10x) and {rows[(wl, 'view')] / rows[(ws, 'view')]:.2f}"
+                     f"x the {ws:g} m view error (target <= 1.5x).")
+    return "\n".join(L) + "\n"
 
 
 def main(argv=None) -> int:
@@ -104,7 +164,7 @@ def main(argv=None) -> int:
                 rows.append(r)
                 print(f"{w:6.0f} m  {alg:4s} {mode:6s} passes {r['passes']:6d}  "
                       f"rel.err(mean) {r['rel_error_mean']:.3f}  relRMSE {r['rel_rmse']:.3f}  "
-                      f"radius {r['radius']:.2e}", flush=True)
+                      f"radius {r['radius_m']:.2e} m", flush=True)
     if a.out:
         with open(a.out, "w") as f:
             json.dump({"seconds": a.seconds, "rows": rows}, f, indent=1)

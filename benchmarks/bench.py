@@ -57,6 +57,7 @@ from jaxvcm import __version__
 from . import _common as C
 from . import peer_mitsuba as _peer
 from . import spectral as _sp
+from . import aim_sweep as _as
 from . import scaling as _sc
 from . import startup as _st
 from . import vertex_merging as _vm
@@ -219,6 +220,12 @@ def _parser() -> argparse.ArgumentParser:
                         "persistent cache (first scene; default pt bdpt vcm, size 256)")
     g.add_argument("--startup-runs", type=_int_ge(1), default=3, metavar="N",
                    help="runs per algorithm with --startup, each with a fresh cache (3)")
+    g.add_argument("--scale-sweep", action="store_true",
+                   help="issue 13's flat sunlit pool at 2, 20, 120 m: vcm and ppm relative "
+                        "error against the closed form at equal time, today's emission and "
+                        "radius vs aimed where the camera looks (benchmarks/aim_sweep.py)")
+    g.add_argument("--sweep-seconds", type=float, default=10.0, metavar="SEC",
+                   help="seconds per row of --scale-sweep (10)")
     g.add_argument("--scaling", action="store_true",
                    help="time and memory per pass from 64 k to 4 M paths (chunked), and 1 vs "
                         "2 forced CPU devices (first scene, default vcm, depth 8; "
@@ -809,6 +816,10 @@ def _settings(argv):
         if a.mode:
             raise _Usage(f"--startup: not allowed with --{a.mode}")
         a.mode = "startup"
+    if a.scale_sweep:
+        if a.mode:
+            raise _Usage(f"--scale-sweep: not allowed with --{a.mode}")
+        a.mode = "scale-sweep"
     if a.scaling:
         if a.mode:
             raise _Usage(f"--scaling: not allowed with --{a.mode}")
@@ -838,6 +849,7 @@ def _settings(argv):
                  "profile": list(PROFILE_DEFAULT_ALGORITHMS),
                  "startup": list(_st.DEFAULT_ALGORITHMS),
                  "scaling": ["vcm"],
+                 "scale-sweep": ["vcm", "ppm"],
                  "peer": ["pt"]}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
@@ -967,6 +979,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "startup":
             _st.run_startup(a, argv, a.scene_paths[0], C.Log(a.quiet))
+            return 0
+        if a.mode == "scale-sweep":
+            _as.run_sweep(a, argv, C.Log(a.quiet))
             return 0
         if a.mode == "scaling":
             _sc.run_scaling(a, argv, a.scene_paths[0], C.Log(a.quiet))
