@@ -81,8 +81,8 @@ class RenderConfig:
     merge_capacity: static bound on hash-grid candidates per gather point; overflow is
                  flagged in the diagnostics and the host re-runs the pass with more room.
     photon_capacity: static number of photons (valid light vertices) the merging hash grid
-                 holds per pass (chunk); 0 = a quarter of the light-vertex slots, at least
-                 4096 (`_merge.photon_room`). Overflow is flagged like merge_capacity's and
+                 holds per pass (chunk); 0 = half the light-vertex slots, at least 4096
+                 (`_merge.photon_room`). Overflow is flagged like merge_capacity's and
                  the host re-runs the pass with room for every photon.
     trace_split: the subpath tracer advances 1/trace_split of the lanes (at least
                  `_queue.MIN_ROUND`) per round, taking

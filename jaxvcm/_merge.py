@@ -100,27 +100,26 @@ def _one_scattering_event(scene: Scene, medium):
     return jnp.where(medium[:, None], inv[None, :], 1.0)
 
 
-PHOTON_FRACTION = 0.25  # default photon room: this share of the light-vertex slots,
-PHOTON_PER_PATH = 0.5  # ... at least this many per light path (max depth 2: one row),
+PHOTON_FRACTION = 0.5  # default photon room: this share of the light-vertex slots,
 PHOTON_MIN_ROOM = 4096  # ... and at least this many (smaller passes keep every slot)
 
 
 def photon_room(cfg: RenderConfig, slots: int) -> int:
     """Static number of photons the hash grid holds for `slots` light-vertex slots
     ([max(D - 1, 1), paths] flattened): `cfg.photon_capacity` if set, else
-    PHOTON_FRACTION of the slots and PHOTON_PER_PATH per path, whichever is more, rounded
-    up to a multiple of 1024 and at least PHOTON_MIN_ROOM; never more than the slots (then
-    nothing is compacted). Valid photons measured at depth 8, 48x48, two keys (pool also
-    256x256: 6.6 %): pool 6.2-6.3 %, pool_sun 7.4-8.0 %, pool_sky 6.4-6.6 %, pool_wall
-    9.5-9.7 %, cornell_sun 9 %, cornell_background 6 % of the slots (the default room has
-    2.5x margin or more there); cornell, cornell_point and cornell_spheres 36-38 % (closed
-    lit walls: they overflow once, and the host re-run gives them room)."""
+    PHOTON_FRACTION of the slots rounded up to a multiple of 1024 and at least
+    PHOTON_MIN_ROOM; never more than the slots (then nothing is compacted). Valid photons
+    measured at depth 8, 48x48, two keys (pool also 256x256: 6.6 %): pool 6.2-6.3 %,
+    pool_sun 7.4-8.0 %, pool_sky 6.4-6.6 %, pool_wall 9.5-9.7 %, cornell_sun 9 %,
+    cornell_background 6 %, cornell, cornell_point and cornell_spheres 36-38 % of the
+    slots (closed, lit walls), so no shipped scene overflows at depth 8. A quarter would
+    do for the pools (5 % less merging time there) but made the Cornell boxes re-run (and
+    recompile) their first pass. Shallow depths have larger shares (the Cornell boxes'
+    first row: 60-78 %); those overflow once, and the host re-run gives them room."""
     if cfg.photon_capacity:
         room = int(cfg.photon_capacity)
     else:
-        paths = slots // max(cfg.max_depth - 1, 1)
-        want = max(slots * PHOTON_FRACTION, paths * PHOTON_PER_PATH)
-        room = max(PHOTON_MIN_ROOM, -(-int(math.ceil(want)) // 1024) * 1024)
+        room = max(PHOTON_MIN_ROOM, -(-int(math.ceil(slots * PHOTON_FRACTION)) // 1024) * 1024)
     return min(room, slots)
 
 
