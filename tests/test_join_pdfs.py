@@ -11,16 +11,24 @@ scenes/pool.toml (area light, diffuse floor and walls, medium vertices in the wa
 the delta water surface, distance sampling in the water), scenes/cornell_point.toml
 (point light, one-sided diffuse walls, one-sided glossy floor with paths steered into
 its Phong lobe, delta spheres) and scenes/pool_sky.toml (a light at infinity: escaped
-emitter hits, next-event estimation to the sky, solid-angle pdfs of y_0), float64:
+emitter hits, next-event estimation to the sky, solid-angle pdfs of y_0), and with aimed
+emission (issue 13, `AIMED`): scenes/pool_sun.toml with `aim = 0.9` (a delta light at
+infinity), once with the default 1 x 1 map over the footprint and once with a hand-made
+[4, 4] map with zero cells over a smaller rectangle, and scenes/pool_sky.toml with
+`aim = 0.5`; their paths' first vertex x_1 lies on a line that crosses the water's plane
+in (or just beside) the aimed rectangle three times in four, float64:
 
 1. the subpath records are built the renderer's way (`_subpath.Vertex` records of each
    subpath through `_subpath.camera_ends` / `light_ends`, so the kind codes and the
    medium flag come from the renderer), and each family's function is called on them;
 2. every pdf it returns equals the value computed here from the geometry alone, with
    NumPy formulas written out below (BSDF / phase pdfs, area conversions, distance
-   sampling, the pinhole's pdf, the lights' pdfs): no renderer pdf helper is reused for
-   the expected values (only the scene's numbers, and for the sky the direction
-   `_lights.sample_light` draws, so that next-event estimation meets x_0);
+   sampling, the pinhole's pdf, the lights' pdfs, the aimed mixture of a light at
+   infinity: the line through x_1, its crossing of the water's plane, the map's cell,
+   |d_y|, `infinite_emission_pdf`): no renderer pdf helper is reused for the expected
+   values (only the scene's numbers, and for the sky the direction `_lights.sample_light`
+   draws, so that next-event estimation meets x_0); the pdfs `_lights.sample_emission`
+   stores for y_0 of an aimed light are checked against the same mixture;
 3. the MIS weights of all techniques, assembled with the renderer's join pdfs (and
    garbage in the stored join slots of the subpaths), sum to one and equal the exact
    oracle of tests/test_mis.py built from the brute-force full-path pdfs;
@@ -33,9 +41,11 @@ emitter hits, next-event estimation to the sky, solid-angle pdfs of y_0), float6
 5. planted mistakes (the old KIND_MEDIUM = MAT_GLOSSY bug, the cosine dropped at the
    receiving vertex, the BSDF pdf with wo and wi swapped, the water's distance sampling
    with the wrong end, the pinhole pdf with cos^2, the emission pdf of the reversed
-   direction, the sky's pdf of the reversed direction) make step 2 fail, and two in
-   merging (its reverse pdfs with the directions swapped, the surface disk kernel at
-   medium vertices) make step 4 fail.
+   direction, the sky's pdf of the reversed direction; aimed: the emission pdf without
+   its aimed part, the aimed density without |d_y|, the map's cells transposed) make
+   step 2 fail (the last two also the emission's stored pdf), and two in merging (its
+   reverse pdfs with the directions swapped, the surface disk kernel at medium vertices)
+   make step 4 fail.
 
 Conventions the expected values follow (`_subpath.to_area`, `dist_pdf`; docs/design.md
 "Subpath records"): a pdf of vertex x_b generated from x_a is the solid-angle pdf at x_a
@@ -53,6 +63,7 @@ import collections
 import functools
 import os
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -67,8 +78,9 @@ from jaxvcm import _lights as L
 from jaxvcm import _subpath as SP
 from jaxvcm import _merge
 from jaxvcm._path import Pdfs, both_partials, log_n_light_tracing, pdfs, weight
-from jaxvcm._scene import (LIGHT_POINT, LIGHT_RECT, LIGHT_SKY, MAT_DIELECTRIC, MAT_DIFFUSE,
-                           MAT_GLOSSY, MAT_MIRROR, PHASE_ISOTROPIC)
+from jaxvcm._io._scene_file import read_scene_doc, scene_from_dict
+from jaxvcm._scene import (LIGHT_POINT, LIGHT_RECT, LIGHT_SKY, LIGHT_SUN, MAT_DIELECTRIC,
+                           MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, PHASE_ISOTROPIC)
 from jaxvcm._vec import Vec3
 
 from .test_mis import oracle, oracle_vcm
@@ -82,10 +94,35 @@ RTOL = 1e-9
 FOV = {"pool": 42.0, "cornell_point": 45.0, "pool_sky": 42.0}
 SCENES = list(FOV)
 BOX_AND_POOL = ["pool", "cornell_point"]  # what the planted mistakes run on
+# Aimed emission (issue 13, `_lights.aimed_pdf`): name -> (scene file, the aim of its one
+# light, (aim_map, aim_rect) or None for the defaults: a 1 x 1 map over the footprint).
+# The hand-made map: [4, 4] cells (rows z, columns x) with zero cells, over a rectangle
+# smaller than the footprint [-1, 1]^2 and off its centre, so that the lines through the
+# random paths' vertices cross the water's plane outside it, inside it and in zero cells.
+AIM_MAP = np.array([[1.0, 0.0, 2.0, 0.5],
+                    [0.0, 3.0, 1.0, 0.0],
+                    [2.0, 0.7, 0.0, 4.0],
+                    [0.5, 0.0, 1.5, 1.0]])
+AIM_RECT = np.array([-0.55, 0.45, -0.7, 0.35])  # x0, x1, z0, z1
+AIMED = {"pool_sun_aim": ("pool_sun", 0.9, None),
+         "pool_sun_aim_map": ("pool_sun", 0.9, (AIM_MAP, AIM_RECT)),
+         "pool_sky_aim": ("pool_sky", 0.5, None)}
+FOV.update({name: FOV["pool"] for name in AIMED})  # the pool's camera
+INF = ("sky", "sun")  # the labels of a light vertex at infinity
 
 
 @functools.lru_cache(maxsize=None)
 def scene_of(name):
+    if name in AIMED:
+        src, aim, guide = AIMED[name]
+        path = os.path.join(ROOT, "scenes", f"{src}.toml")
+        doc = read_scene_doc(path)
+        doc["lights"][0]["aim"] = aim
+        sc = scene_from_dict(doc, path, dtype=F64)
+        if guide is not None:
+            sc = eqx.tree_at(lambda s: (s.lights.aim_map, s.lights.aim_rect), sc,
+                             tuple(jnp.asarray(g, F64) for g in guide))
+        return sc
     return jaxvcm.load_scene(os.path.join(ROOT, "scenes", f"{name}.toml"), dtype=F64)
 
 
@@ -161,17 +198,55 @@ def pinhole_pdf(sc, name, w):
     return 1.0 / ((2.0 * th * aspect / cam.width) * (2.0 * th / cam.height) * c**3)
 
 
-def light_pdfs(sc, x0, w):
-    """(A(y_0), emission pdf of direction w leaving y_0) of the scene's one light: a
-    rectangle (1 / area; cos / pi about its normal), a point (delta: the selection
-    probability 1; uniform 1 / (4 pi)) or the sky (y_0 the direction x0.dir to the sky,
-    cosine-distributed about +y: cos / pi; the ray from a disk of the scene's bounding
-    radius R across it: 1 / (pi R^2) per perpendicular area)."""
+def aimed_density(sc, d, p):
+    """The aimed part of an infinite light's emission (issue 13) per unit area
+    perpendicular to d, for the line of direction d through p (NumPy, from the scene's
+    numbers alone): the line crosses the water's plane y = level at c; if c lies in the
+    rectangle [x0, x1) x [z0, z1) of `aim_rect`, in cell (i, j) of the [G, G] `aim_map`
+    (rows i along z, columns j along x), the aimed photons cross the plane there with
+    density G^2 w_ij / (sum w (x1 - x0)(z1 - z0)) per unit plane area, which is
+    1 / |d_y| times as dense per unit perpendicular area; 0 outside the rectangle."""
+    if abs(d[1]) < 1e-12:
+        return 0.0
+    c = p + d * ((float(sc.water.level) - p[1]) / d[1])
+    x0, x1, z0, z1 = np.asarray(sc.lights.aim_rect, float)
+    if not (x0 <= c[0] < x1 and z0 <= c[2] < z1):
+        COVER["aim outside"] += 1
+        return 0.0
+    w = np.asarray(sc.lights.aim_map, float)
+    G = w.shape[0]
+    i = min(int((c[2] - z0) / (z1 - z0) * G), G - 1)
+    j = min(int((c[0] - x0) / (x1 - x0) * G), G - 1)
+    COVER["aim zero cell" if w[i, j] == 0 else "aim inside"] += 1
+    return G * G * w[i, j] / (w.sum() * (x1 - x0) * (z1 - z0) * abs(d[1]))
+
+
+def infinite_emission_pdf(sc, d, p):
+    """Per perpendicular area, the pdf of the line of direction d through p that a light
+    at infinity emits along: 1 / (pi R^2) on the disk of the scene's bounding radius R
+    (centred on the line through the bounding sphere's centre), for an aimed light (aim P)
+    the mixture (1 - P) / (pi R^2) + P `aimed_density`."""
+    lo, hi = (np.asarray(x, float) for x in sc.bounds)
+    R = 0.5 * np.linalg.norm(hi - lo)
+    aim = sc.lights.aim
+    P = float(aim[0]) if len(aim) else 0.0
+    disk = 1.0 / (np.pi * R * R)
+    return disk if P == 0 else (1.0 - P) * disk + P * aimed_density(sc, d, p)
+
+
+def light_pdfs(sc, x0, w, x1):
+    """(A(y_0), emission pdf of direction w leaving y_0 towards x1) of the scene's one
+    light: a rectangle (1 / area; cos / pi about its normal), a point (delta: the selection
+    probability 1; uniform 1 / (4 pi)), the sky (y_0 the direction x0.dir to the sky,
+    cosine-distributed about +y: cos / pi) or the sun (delta: the selection probability
+    1); from the sky or the sun the ray's line through x1 (`infinite_emission_pdf`: the
+    bounding disk's 1 / (pi R^2) per perpendicular area, mixed with the aimed density)."""
     assert len(sc.lights.kind) == 1
-    if sc.lights.kind[0] == LIGHT_SKY:
-        lo, hi = (np.asarray(x, float) for x in sc.bounds)
-        R = 0.5 * np.linalg.norm(hi - lo)
-        return max(x0.dir[1], 0.0) / np.pi, 1.0 / (np.pi * R * R)
+    if sc.lights.kind[0] in (LIGHT_SKY, LIGHT_SUN):
+        pe = infinite_emission_pdf(sc, -x0.dir, x1.p)
+        if sc.lights.kind[0] == LIGHT_SUN:
+            return 1.0, pe
+        return max(x0.dir[1], 0.0) / np.pi, pe
     if sc.lights.kind[0] == LIGHT_RECT:
         i = sc.lights.shape[0]
         A = np.linalg.norm(np.cross(np.asarray(sc.rects.e1[i]), np.asarray(sc.rects.e2[i])))
@@ -204,7 +279,7 @@ def full_path_pdfs(sc, name, X, water):
     pinhole); water[i]: segment x_i - x_{i+1} runs through the water."""
     k = len(X) - 1
     A, B = [0.0] * (k + 1), [0.0] * (k + 1)
-    A[0], pe = light_pdfs(sc, X[0], unit(X[1].p - X[0].p))
+    A[0], pe = light_pdfs(sc, X[0], unit(X[1].p - X[0].p), X[1])
     A[1] = area(sc, pe, X[0], X[1], water[0])
     for i in range(2, k + 1):
         a = X[i - 1]
@@ -217,7 +292,7 @@ def full_path_pdfs(sc, name, X, water):
         b = X[i + 1]
         B[i] = 1.0 if b.delta else area(sc, pdf_w(sc, b, unit(X[i + 2].p - b.p),
                                                   unit(X[i].p - b.p)), b, X[i], water[i])
-    if X[0].what == "sky":  # y_0 at infinity: per perpendicular area / solid angle
+    if X[0].what in INF:  # y_0 at infinity: per perpendicular area / solid angle
         w, x1 = X[0].dir, X[1]
         A[1] = pe * (1.0 if x1.what == "medium" else abs(float(np.dot(x1.n, w))))
         if k == 1:  # the pinhole sees the sky
@@ -303,12 +378,41 @@ def _interior_vertex(sc, rng, prev, prev2):
               mkind=MAT_DIELECTRIC, mat=w.mat, delta=True)
 
 
+def aimed(sc):
+    return len(sc.lights.aim) > 0 and float(sc.lights.aim[0]) > 0
+
+
+def _aimed_vertex(sc, rng, d):
+    """For an aimed light (issue 13), a vertex x_1 on a line of the light's direction d
+    (the way light travels) that crosses the water's plane at a point c drawn uniformly
+    over `aim_rect` widened by 15 % on each side: where the line meets the basin from
+    above the footprint (a surface vertex), or a point of the line in the water (a medium
+    vertex; also for lines that cross the plane beside the pool and enter the water through
+    a wall's plane). So the lines through x_1 cross the plane inside the rectangle (in zero
+    cells of a map too) and just outside it. None where there is no such vertex."""
+    x0, x1, z0, z1 = np.asarray(sc.lights.aim_rect, float)
+    mx, mz = 0.15 * (x1 - x0), 0.15 * (z1 - z0)
+    level = float(sc.water.level)
+    c = np.array([rng.uniform(x0 - mx, x1 + mx), level, rng.uniform(z0 - mz, z1 + mz)])
+    if rng.uniform() < 0.5:
+        fx0, fx1, fz0, fz1 = np.asarray(sc.water.footprint, float)
+        hit = _hit_rects(sc, c, d)
+        if hit is None or not (fx0 < c[0] < fx1 and fz0 < c[2] < fz1):
+            return None
+        return _surface_vertex(sc, hit[1], hit[2], hit[3])
+    p = c + d * (rng.uniform(float(sc.water.floor), level) - level) / d[1]
+    if not in_water(sc, p):
+        return None
+    return Vx(p=p, n=unit(rng.normal(size=3)), what="medium", delta=False)
+
+
 def random_path(sc, name, rng, k):
     """x_0 on the light (rectangle: at uniforms (u1, u2), returned for next-event
     estimation to sample the same point; sky: the direction next-event estimation samples
-    from x_1 at (u1, u2)), k - 1 interior vertices, x_k the pinhole; the
-    vertex before the pinhole is redrawn until the film sees it. Returns (X, water flags
-    per segment, (u1, u2))."""
+    from x_1 at (u1, u2); sun: its direction), k - 1 interior vertices (for an aimed light
+    x_1 three times in four on a line through its rectangle, `_aimed_vertex`), x_k the
+    pinhole; the vertex before the pinhole is redrawn until the film sees it. Returns (X,
+    water flags per segment, (u1, u2))."""
     u12 = rng.uniform(0.02, 0.98, 2)
     if sc.lights.kind[0] == LIGHT_RECT:
         i = sc.lights.shape[0]
@@ -319,25 +423,33 @@ def random_path(sc, name, rng, k):
     elif sc.lights.kind[0] == LIGHT_POINT:  # its record's normal: the emission direction
         x0 = Vx(p=np.asarray(sc.lights.position[0], float), n=None, what="light", delta=False)
     else:
-        assert sc.lights.kind[0] == LIGHT_SKY
-        x0 = Vx(p=None, n=None, what="sky", delta=False, mat=0, mkind=-1)  # set below
+        assert sc.lights.kind[0] in (LIGHT_SKY, LIGHT_SUN)
+        x0 = Vx(p=None, n=None, what="sky" if sc.lights.kind[0] == LIGHT_SKY else "sun",
+                delta=False, mat=0, mkind=-1)  # set below
     cam = Vx(p=np.asarray(sc.camera.origin, float), n=np.asarray(sc.camera.forward, float),
              what="camera", delta=False)
+    if x0.what in INF:  # the direction next-event estimation samples at u12 (the sun's:
+        # its own), from any point: the sky's is cosine-distributed about +y wherever
+        ls = L.sample_light(sc, Vec3(*(jnp.asarray(c, F64) for c in cam.p)),
+                            jnp.asarray(0.5, F64), jnp.asarray(u12[0], F64),
+                            jnp.asarray(u12[1], F64))
+        x0["dir"] = np.array([float(c) for c in ls.wi])
     X = [x0]
     for i in range(1, k):
         for _ in range(50):
-            v = _interior_vertex(sc, rng, X[-1], X[-2] if i >= 2 else None)
+            v = None
+            if i == 1 and aimed(sc) and rng.uniform() < 0.75:
+                v = _aimed_vertex(sc, rng, -x0.dir)
+            if v is None:
+                v = _interior_vertex(sc, rng, X[-1], X[-2] if i >= 2 else None)
             coplanar = (v.what == X[-1].what == "surface"
                         and abs(np.dot(v.p - X[-1].p, v.n)) < 1e-9)  # a 0 pdf both ways
             if not coplanar and (i < k - 1 or pinhole_pdf(sc, name, unit(v.p - cam.p)) > 0):
                 break
         X.append(v)
     X.append(cam)
-    if x0.what == "sky":  # the direction next-event estimation samples from x_1 at u12
-        ls = L.sample_light(sc, Vec3(*(jnp.asarray(c, F64) for c in X[1].p)),
-                            jnp.asarray(0.5, F64), jnp.asarray(u12[0], F64),
-                            jnp.asarray(u12[1], F64))
-        w = np.array([float(c) for c in ls.wi])
+    if x0.what in INF:
+        w = x0.dir
         lo, hi = (np.asarray(x, float) for x in sc.bounds)
         # y_0's record: a point on the emission disk outside the bounding sphere, on the
         # ray that reaches x_1; its normal the direction to the sky
@@ -345,7 +457,7 @@ def random_path(sc, name, rng, k):
     if x0.n is None:
         x0["n"] = unit(X[1].p - x0.p)
     water = [in_water(sc, 0.5 * (X[i].p + X[i + 1].p)) for i in range(k)]
-    if x0.what == "sky":
+    if x0.what in INF:
         water[0] = False  # the light's first ray starts outside the scene
     return X, water, u12
 
@@ -375,7 +487,7 @@ def _records(sc, seq, seg, fwd=None, rev=None, q=None, rows=None):
     beta = jnp.ones((M, 1, Cn), F64)
     wo = [unit(seq[i].p - seq[i + 1].p) for i in range(n_live)]
     # an escaped camera vertex (the sky) records the direction to the sky as its position
-    return SP.Vertex(v3([v.dir if v.what == "sky" else v.p for v in rows]),
+    return SP.Vertex(v3([v.dir if v.what in INF else v.p for v in rows]),
                      v3([v.n for v in rows]),
                      v3(wo + [wo[-1]] * (M - n_live)), beta, a(pad(fwd)), a(pad(rev)),
                      a(kind, jnp.int32), a([v.get("mat", 0) for v in rows], jnp.int32),
@@ -415,8 +527,8 @@ def emission(sc, X, pdf_pos):
                         (x0.p, x0.n, x0.p, unit(X[1].p - x0.p))),
                       jnp.ones((1, sc.channels), F64), jnp.ones((1, sc.channels), F64),
                       jnp.asarray([pdf_pos], F64), jnp.ones((1,), F64), jnp.zeros((1,), jnp.int32),
-                      jnp.asarray([x0.what == "sky"]),
-                      jnp.asarray([sc.lights.kind[0] == LIGHT_POINT]))
+                      jnp.asarray([x0.what in INF]),
+                      jnp.asarray([sc.lights.kind[0] in (LIGHT_POINT, LIGHT_SUN)]))
 
 
 def vertex(ends, i):
@@ -482,8 +594,8 @@ def check_path(name, seed, k, R: Renderer, merging=False):
     X, water, u12 = random_path(sc, name, rng, k)
     A, B = full_path_pdfs(sc, name, X, water)
     delta = [v.delta for v in X]
-    delta_light = sc.lights.kind[0] == LIGHT_POINT
-    infinite = X[0].what == "sky"
+    delta_light = sc.lights.kind[0] in (LIGHT_POINT, LIGHT_SUN)
+    infinite = X[0].what in INF
     b = jnp.asarray
     checked = collections.Counter()  # family -> join pdfs compared that are not 0
     fam = None
@@ -690,6 +802,88 @@ def test_fixed_paths_cover_every_family():
     assert COVER["phong lobe"] >= 3 and COVER["medium"] >= 10, COVER
 
 
+# ---------------------------------------------------------------- aimed emission (issue 13)
+# the aimed scenes' fixed paths: 16 first vertices x_1 (x_1 depends on the seed alone), so
+# that their lines cross the water's plane inside and outside each scene's rectangle and in
+# zero cells of the hand-made map
+AIM_CASES = [(seed, (2, 3, 4, 6)[seed % 4]) for seed in range(16)]
+
+
+@pytest.mark.parametrize("name", list(AIMED))
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(1, KMAX))
+def test_aimed_join_pdfs_equal_brute_force_and_weights_sum_to_one(name, seed, k):
+    # the emission pdf of a sun or sky light with `aim` (the disk / aimed mixture of the
+    # line through x_1, `infinite_emission_pdf`) in every technique's join pdfs and in the
+    # MIS weights built from them; the same paths as the fixed ones below, other seeds
+    check_path(name, seed, k, renderer())
+
+
+@pytest.mark.parametrize("name", ["pool_sun_aim_map", "pool_sky_aim"])
+@settings(max_examples=2, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(2, KMAX))
+def test_aimed_merges_and_connections_weights_sum_to_one(name, seed, k):
+    # bpm with the aimed lights (the sun: a delta light at infinity, no emitter hit):
+    # the merges' weights from `_merge.vertex_merging` against the exact oracle
+    check_path(name, seed, k, renderer(), merging=True)
+
+
+def test_aimed_fixed_paths_cover_the_rectangle_and_every_family():
+    # the aimed scenes' fixed paths pass, each family compares non-zero pdfs, and the lines
+    # through x_1 cross the water's plane inside each scene's aimed rectangle and outside
+    # it, and in zero cells of the hand-made map (its disk part alone there)
+    for name in AIMED:
+        COVER.clear()
+        checked = collections.Counter()
+        for seed, k in AIM_CASES:
+            checked.update(check_path(name, seed, k, renderer()))
+        fams = ["nee", "light tracing", "connection"]  # the sun cannot be hit
+        fams += ["emitter hit"] * (scene_of(name).lights.kind[0] == LIGHT_SKY)
+        assert all(checked[f] >= 4 for f in fams), (name, checked)
+        assert COVER["aim inside"] >= 1 and COVER["aim outside"] >= 1, (name, COVER)
+        if AIMED[name][2] is not None:
+            assert COVER["aim zero cell"] >= 1, (name, COVER)
+
+
+@functools.lru_cache(maxsize=None)
+def _sample_emissions():
+    return jax.jit(jax.vmap(lambda sc, u: L.sample_emission(sc, u), in_axes=(None, 0)))
+
+
+def check_emissions(name, sample, n=48):
+    """The light subpath's y_0 pdfs (`_lights.sample_emission`, which `_subpath.light_start`
+    stores as the pdf of the first segment) of n emissions of an aimed light: pdf_dir equals
+    `infinite_emission_pdf` of the emitted line, pdf_pos the light's pdf of its direction;
+    the aimed part of the samples (u_3 < aim) crosses the water's plane in the rectangle in
+    cells of non-zero weight. Returns the `aimed_density` coverage of the lines."""
+    sc = scene_of(name)
+    P = float(sc.lights.aim[0])
+    u = np.random.default_rng(7).uniform(0.0, 1.0, (n, 5))
+    e = sample(sc, jnp.asarray(u, F64))
+    o, d = (np.stack([np.asarray(c, float) for c in v], -1) for v in (e.o, e.d))
+    COVER.clear()
+    for i in range(n):
+        zero_before = COVER["aim zero cell"]
+        want = infinite_emission_pdf(sc, d[i], o[i])
+        _close(f"emission pdf_dir {name} sample {i}", e.pdf_dir[i], want)
+        pos = 1.0 if sc.lights.kind[0] == LIGHT_SUN else max(-d[i, 1], 0.0) / np.pi
+        _close(f"emission pdf_pos {name} sample {i}", e.pdf_pos[i], pos)
+        if u[i, 3] < P:  # aimed: its line crosses in a cell of the map of non-zero weight
+            x0, x1, z0, z1 = np.asarray(sc.lights.aim_rect, float)
+            c = o[i] + d[i] * (float(sc.water.level) - o[i, 1]) / d[i, 1]
+            assert x0 <= c[0] < x1 and z0 <= c[2] < z1, (name, i, c)
+            assert COVER["aim zero cell"] == zero_before, (name, i, c)
+    return {key: v for key, v in COVER.items() if key.startswith("aim")}
+
+
+def test_aimed_emission_pdfs_equal_brute_force():
+    for name in AIMED:
+        cover = check_emissions(name, _sample_emissions())
+        assert cover.get("aim inside", 0) >= 5, (name, cover)
+    # the hand-made map's smaller rectangle: the disk part's lines cross outside it too
+    assert cover.get("aim outside", 0) >= 2, cover
+
+
 def _no_cosine(orig):
     def to_area(pdf_w, target_medium, target_n, w, d, seg_water, water, infinite_source=False):
         g = jnp.where(infinite_source, 1.0, 1.0 / jnp.maximum(d * d, 1e-30))
@@ -723,6 +917,23 @@ def _flipped(orig):
     return lambda scene, light, w, *rest: orig(scene, light, -w, *rest)
 
 
+def _aim_ignored(orig):
+    def emission_pdf_dir(scene, light, n, w, p=None):  # lights at infinity: the disk alone
+        _, rb = L.bounding_sphere(scene)
+        inf = jnp.asarray([k in (LIGHT_SKY, LIGHT_SUN) for k in scene.lights.kind])[light]
+        return jnp.where(inf, 1.0 / (jnp.pi * rb * rb), orig(scene, light, n, w, p))
+    return emission_pdf_dir
+
+
+def _no_dy(orig):
+    return lambda scene, d, p: orig(scene, d, p) * jnp.abs(d.y)
+
+
+def _map_transposed(orig):  # rows along x, columns along z
+    return lambda scene, d, p: orig(
+        eqx.tree_at(lambda s: s.lights.aim_map, scene, scene.lights.aim_map.T), d, p)
+
+
 # name -> (scenes, module, attribute, the mistake given the original)
 PLANTED = {
     # the bug this file was written after: every glossy vertex a medium vertex at the joins
@@ -734,6 +945,13 @@ PLANTED = {
     "emission_pdf_backwards": (["pool"], L, "emission_pdf_dir", _backwards),
     # the sky's pdf of the direction away from the sky (emitter hits, next-event estimation)
     "sky_direction_flipped": (["pool_sky"], L, "light_point_pdf", _flipped),
+    # aimed emission (issue 13): the emission pdf of a light at infinity without its aimed
+    # part (the bounding disk's alone), the aimed density per unit area of the water's
+    # plane instead of per unit perpendicular area (|d_y| dropped), the map's cells looked
+    # up transposed
+    "aim_ignored": (["pool_sun_aim", "pool_sky_aim"], L, "emission_pdf_dir", _aim_ignored),
+    "aimed_pdf_without_dy": (list(AIMED), L, "aimed_pdf", _no_dy),
+    "aim_map_transposed": (["pool_sun_aim_map"], L, "aimed_pdf", _map_transposed),
 }
 
 
@@ -744,8 +962,19 @@ def test_planted_mistake_fails(mistake, monkeypatch):
     R = Renderer(jit=False)  # run afresh with the mistake in place
     for name in scenes:
         with pytest.raises(AssertionError, match="join pdf"):
-            for seed, k in CASES:
+            for seed, k in AIM_CASES if name in AIMED else CASES:
                 check_path(name, seed, k, R)
+
+
+@pytest.mark.parametrize("mistake", ["aimed_pdf_without_dy", "aim_map_transposed"])
+def test_planted_emission_mistake_fails(mistake, monkeypatch):
+    # the same mistakes in the pdf the emission stores for y_0's first segment
+    scenes, module, attr, plant = PLANTED[mistake]
+    monkeypatch.setattr(module, attr, plant(getattr(module, attr)))
+    sample = jax.jit(jax.vmap(lambda sc, u: L.sample_emission(sc, u), in_axes=(None, 0)))  # afresh
+    for name in scenes:
+        with pytest.raises(AssertionError, match="join pdf emission pdf_dir"):
+            check_emissions(name, sample, n=16)
 
 
 def _swap_directions(orig):
