@@ -120,18 +120,34 @@ def pool_scene(name, w, h, **over):
     return jaxvcm.scene_from_dict(d, name)
 
 
-def assert_algorithms_agree(scene, algs, max_depth, seed, passes=24, blocks=4, what=""):
+def assert_algorithms_agree(scene, algs, max_depth, seed, passes=24, blocks=4, what="",
+                            spp=16, heavy=()):
     """Independent renders of each algorithm (different seeds); block means agree within K
-    combined standard errors; returns the first algorithm's block means."""
-    res = []
+    combined standard errors, and so do the image means (per channel), whose combined
+    standard error must be below 1.25 % of the value: a 5 % difference between two
+    algorithms is then K = 4 standard errors away and fails. `heavy`: algorithms whose
+    estimate is heavy-tailed on this scene (their standard error is not a measure of their
+    error): compared the same way, without the 5 % assertion. Returns the first algorithm's
+    block means."""
+    res, means = [], []
     for n, alg in enumerate(algs):
-        _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=max_depth),
+        _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=max_depth,
+                                                             spp=spp),
                                          passes=passes, seed=seed + n)
         assert bad == 0
         bm = block_means(imgs, blocks)
         res.append((bm.mean(0), bm.std(0, ddof=1) / np.sqrt(bm.shape[0])))
-    for other in res[1:]:
-        assert_close(*res[0], *other, rel=1e-3, what=what)
+        x = imgs.mean(axis=(1, 2))  # image mean per pass: i.i.d. samples
+        means.append((x.mean(0), x.std(0, ddof=1) / np.sqrt(x.shape[0])))
+    for n, other in enumerate(res[1:], 1):
+        assert_close(*res[0], *other, rel=1e-3, what=f"{what} {algs[0]} vs {algs[n]}")
+        (m0, s0), (m1, s1) = means[0], means[n]
+        se = np.sqrt(s0**2 + s1**2)
+        assert algs[n] in heavy or np.all(se < 0.0125 * m0), (
+            f"{what}: SE of the image-mean difference {algs[0]} - {algs[n]} is "
+            f"{se / m0} of the value: cannot see a 5 % difference at 4 SE")
+        assert np.all(np.abs(m1 - m0) <= 4 * se), (
+            f"{what}: image means {algs[n]} {m1} vs {algs[0]} {m0} (SE {se})")
     return res[0][0]
 
 
@@ -142,8 +158,22 @@ def test_pt_bdpt_and_vcm_agree_on_pool(name):
     # the passes) is far below these standard errors (tests/test_merge.py measures the bias
     # against radius on a scene built to show it). max_depth 4: every technique family of
     # paths up to 4 segments (camera -> surface -> floor -> surface -> light included).
-    assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt", "vcm"), 4, seed=11,
-                            passes=16, what=name)
+    # pool_sky: 32 passes of 16 spp, SE of the image-mean difference ~1.0 % of the value.
+    # pool (a small light above the water): the floor seen through the surface is lit only
+    # by paths camera -> surface -> floor -> surface -> light, which pt and bdpt sample only
+    # by hitting the light through two refractions (rare, huge samples: their standard
+    # error says nothing; measured 5 % at 16 x 1 spp, 44-50 % at 24 x 16) and vcm by
+    # merging, whose radius bias shows at 5 % resolution in a caustic block (bdpt vs vcm
+    # 18 % off in one block at 24 x 16). So the pool keeps the block comparison within its
+    # standard errors (16 passes of 1 spp, as before), without the 5 % assertion; its
+    # geometry and water are checked at 5 % resolution by pool_sky here and by the caustic
+    # reference (tests/test_caustics.py).
+    if name == "pool_sky":
+        assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt", "vcm"), 4, seed=11,
+                                passes=32, what=name)
+    else:
+        assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt", "vcm"), 4, seed=11,
+                                passes=16, spp=1, what=name, heavy=("bdpt", "vcm"))
 
 
 def test_lt_and_bdpt_agree_on_directly_lit_wall():
@@ -159,8 +189,9 @@ def test_lt_and_bdpt_agree_on_sun_caustics_from_under_water():
     # floor -> camera) are made by light tracing alone; BDPT must match it.
     scene = pool_scene("pool_sun", 16, 16, position=[0.3, -0.6, 0.5], target=[-0.2, -1.2, -0.4],
                        fov=60)
+    # light tracing's caustics are noisy: 24 passes of 64 spp for an SE near 1 %
     lt = assert_algorithms_agree(scene, ("lt", "bdpt", "vcm"), 4, seed=31, blocks=2,
-                                 passes=16, what="pool_sun under water")
+                                 passes=24, spp=64, what="pool_sun under water")
     assert np.all(lt > 0)
 
 
@@ -207,15 +238,17 @@ def test_flat_water_sun_floor_seen_from_under_water(alg):
     sx, sy = rng.uniform(-th, th, 400_000), rng.uniform(-th, th, 400_000)
     cos_phi = 1.0 / np.sqrt(1 + sx**2 + sy**2)
     expected = L_f * np.exp(-np.outer(h / cos_phi, sigma_a)).mean(0)
-    _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=3), passes=48)
+    _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=3, spp=16),
+                                     passes=48)
     assert bad == 0
     x = imgs.mean(axis=(1, 2))
     assert_close(x.mean(0), x.std(0, ddof=1) / np.sqrt(len(x)), expected, rel=1e-3,
                  what=f"flat water sun {alg}")
-    # and the comparison has teeth: its standard error is below 3.5% of the value, so a
-    # 16% error (e.g. a missing Fresnel factor or 1/eta^2 applied to importance) would
-    # be beyond K standard errors
-    assert np.all(x.std(0, ddof=1) / np.sqrt(len(x)) < 0.035 * expected)
+    # and the comparison has teeth: its standard error is below 1.25 % of the value, so a
+    # 5 % error (a missing Fresnel factor, 1/eta^2 applied to importance: 16 %) is beyond
+    # 4 standard errors
+    se = x.std(0, ddof=1) / np.sqrt(len(x))
+    assert np.all(se < 0.0125 * expected), f"SE {se / expected} cannot see 5 % at 4 SE"
 
 
 def test_pt_cannot_render_the_refracted_sun():
