@@ -61,6 +61,33 @@ def pass_radius(cfg: RenderConfig, scene: Scene, pass_index) -> Radii:
                  jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 3.0)))
 
 
+def check_precise(scene: Scene, cfg: RenderConfig, pass_index) -> None:
+    """Host side, before a pass: raise a one-line ValueError naming `config.radius` if the
+    hash grid cannot resolve pass `pass_index`'s merging radius in the scene's float dtype
+    at the scene's extent (`_hashgrid.build`'s `precise` condition: |coordinate| + span
+    within CELL_MARGIN / (32 u) cells of 2 r (1 + CELL_MARGIN), bounded here by the scene's
+    box, which holds every photon and gather point). A radius below it would make the grid
+    miss neighbours silently; a float64 scene (`load_scene(..., dtype=jnp.float64)`)
+    resolves ~10^8 times smaller radii. No merging: nothing to check."""
+    if cfg.techniques.merging is None:
+        return
+    lo, hi = (np.asarray(b, np.float64) for b in np.asarray(scene.bounds))
+    span = float(np.max(np.maximum(np.abs(lo), np.abs(hi)) + (hi - lo)))
+    u = float(np.finfo(np.dtype(scene.bounds.dtype)).eps) / 2
+    cells = hashgrid.CELL_MARGIN / (32.0 * u) - 2.0
+    r_min = span / (cells * 2.0 * (1.0 + hashgrid.CELL_MARGIN))
+    rb = 0.5 * float(np.linalg.norm(hi - lo))
+    i = float(np.max(np.asarray(pass_index))) + 1.0
+    r = cfg.radius * rb * i ** ((cfg.alpha - 1.0) / 3.0)  # the grid's (the larger) radius
+    if not r > r_min:
+        raise ValueError(
+            f"config.radius: pass {int(i)}'s merging radius {r:.3g} m is below what the hash "
+            f"grid resolves in {np.dtype(scene.bounds.dtype).name} at this scene's extent "
+            f"({span:.3g} m): it needs >= {r_min:.3g} m (a first-pass radius >= "
+            f"{r_min / rb * i ** ((1.0 - cfg.alpha) / 3.0):.3g}); use a larger radius or a "
+            f"float64 scene")
+
+
 def log_etas(radius, n_paths, dtype):
     """log of the merging multiplicity times kernel size, eta_VCM (Georgiev et al. 2012):
     (surface pi r_s^2 N, medium 4/3 pi r_m^3 N); `radius` is a `_merge.Radii` (surface,

@@ -76,7 +76,11 @@ def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overfl
     twice the old one; the photon room (`photons_of(diagnostics)` = (photon overflow, valid
     photons)) at least doubles and holds the photons with a margin (`_merge.more_room`), so
     one re-run (one new compiled program) is enough. Returns (estimate, diagnostics, the
-    config that had room)."""
+    config that had room). Before it, a merging radius the hash grid cannot resolve at the
+    scene's scale is a one-line error (`_merge.check_precise`), never a silent miss."""
+    inner = scene if hasattr(scene, "bounds") else getattr(scene, "scene", None)
+    if inner is not None:
+        _merge.check_precise(inner, config, pass_index)
     while True:
         est, diag = jitted_pass(scene, key, config, pass_index)
         if not bool(np.any(overflow_of(diag))):
