@@ -75,3 +75,17 @@ def pytest_xdist_make_scheduler(config, log):
             super()._assign_work_unit(node)
 
     return LongFilesFirst(config, log)
+
+
+@pytest.fixture(autouse=True)
+def _join_output_import_thread():
+    """The CLI imports its output writers on a daemon thread (`_io.prefetch_imports`); let
+    it finish with the test that started it, so that no import compiles concurrently with
+    pytest's own at the end of a worker (CPython 3.11.7's AST recursion counter is not
+    thread-safe: 'SystemError: AST constructor recursion depth mismatch' crashed a run)."""
+    yield
+    import threading
+
+    for t in threading.enumerate():
+        if t.name == "jaxvcm-prefetch-imports":
+            t.join()

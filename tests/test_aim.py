@@ -303,17 +303,6 @@ def test_view_guided_flat_pool_equals_the_closed_form(alg):
     assert np.all(np.abs(m - want) <= K * se + 1e-3 * want), f"{alg}: {m} vs {want} (SE {se})"
 
 
-def _join_prefetch():
-    """The CLI imports its output writers on a daemon thread (`_io.prefetch_imports`); let
-    it finish before the test ends, so no import compiles concurrently with pytest's own
-    at the end of a worker (CPython 3.11.7's AST recursion counter is not thread-safe:
-    'AST constructor recursion depth mismatch')."""
-    import threading
-    for t in threading.enumerate():
-        if t.name == "jaxvcm-prefetch-imports":
-            t.join()
-
-
 def test_cli_aim_view(tmp_path, capsys):
     # scenes/pool_wide.toml (issue 13's wide pool) renders with --aim-view; a scene without
     # an aimed light is refused in one line with exit status 2
@@ -325,6 +314,5 @@ def test_cli_aim_view(tmp_path, capsys):
     assert rc == 0 and "aimed at" in err, err
     assert main(["render", "scenes/pool_sky.toml", "--aim-view", "--passes", "1",
                  "--out", str(tmp_path / "x.exr")]) == 2
-    _join_prefetch()
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--aim-view" in err[0], err

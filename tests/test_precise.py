@@ -71,20 +71,8 @@ def test_a_later_pass_that_shrinks_below_it_is_refused(sun):
         _merge.check_precise(sun, cfg, 1)
 
 
-def _join_prefetch():
-    """The CLI imports its output writers on a daemon thread (`_io.prefetch_imports`); let
-    it finish before the test ends, so no import compiles concurrently with pytest's own
-    at the end of a worker (CPython 3.11.7's AST recursion counter is not thread-safe:
-    'AST constructor recursion depth mismatch')."""
-    import threading
-    for t in threading.enumerate():
-        if t.name == "jaxvcm-prefetch-imports":
-            t.join()
-
-
 def test_cli_refuses_it_in_one_line(tmp_path, capsys):
     rc = main(["render", "scenes/pool_sun.toml", "--radius", "1e-6", "--passes", "1",
                "--width", "8", "--height", "8", "--out", str(tmp_path / "x.exr"), "--quiet"])
-    _join_prefetch()
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "config.radius" in err[0], err
