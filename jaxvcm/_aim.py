@@ -10,7 +10,8 @@ non-delta vertex of each path that lies under the water (the floor or walls seen
 the surface, or a medium vertex) by its (x, z). The surface above such a point casts its
 caustic (`_casters`): for a sun, the point its refracted ray (flat surface) comes down
 from, widened by what the waves' slopes can tilt it; for the sky, the vertical projection
-widened by depth x tan(critical angle); both by a pixel's footprint. `Lights.aim_rect`
+widened by depth x tan(critical angle); both by a pixel's footprint and the first pass's merge
+radius (a gather point reaches photons that far beyond what it sees). `Lights.aim_rect`
 becomes the casters' widened box (clipped to the footprint) and `Lights.aim_map` the
 [G, G] cells of it within reach of a caster (plus one cell); the disk part of the mixture (1 - P) still covers every line, so
 light that starts elsewhere (reflected off a wall, multiple bounces, wave slopes beyond
@@ -19,7 +20,11 @@ the widening) is still emitted and the estimators stay unbiased.
 The merge radius of the first pass follows the pixel footprint at the same vertices:
 r_1 = `radius_pixels` x the median over paths of (distance from the pinhole along the
 path) x (one pixel's angle, 2 tan(fov / 2) / H), returned as the fraction of the scene's
-bounding radius that `RenderConfig.radius` takes (the progressive schedule is unchanged).
+bounding radius that `RenderConfig.radius` takes (the progressive schedule is unchanged),
+but not below what the hash grid resolves in the scene's float dtype at the scene's
+extent for `horizon` (10^4) passes of the schedule (`_merge.precise_radius`: a 120 m pool
+in float32 takes 4.7 cm instead of its 1.8 cm footprint; a float64 scene takes the
+footprint).
 """
 
 from __future__ import annotations
@@ -35,12 +40,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _integrator as integ
+from . import _merge as merge
 from . import _subpath as subpath
 from ._config import RenderConfig
 from ._scene import LIGHT_SKY, LIGHT_SUN, Scene, bounding_sphere
 
 DEFAULT_GRID = 64
 DEFAULT_RADIUS_PIXELS = 1.0
+DEFAULT_HORIZON = 10_000  # passes the footprint radius must stay resolvable for
 
 
 class ViewGuide(NamedTuple):
@@ -105,10 +112,11 @@ def _casters(scene: Scene, q: np.ndarray, level: float):
 
 
 def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
-               grid: int = DEFAULT_GRID,
-               radius_pixels: float = DEFAULT_RADIUS_PIXELS) -> ViewGuide:
+               grid: int = DEFAULT_GRID, radius_pixels: float = DEFAULT_RADIUS_PIXELS,
+               alpha: float = RenderConfig.alpha, horizon: int = DEFAULT_HORIZON) -> ViewGuide:
     """The pilot's map and radius (module doc); `key`: the pilot's key (default: a fixed
-    key no pass uses)."""
+    key no pass uses). The radius is at least what the hash grid resolves in the scene's
+    float dtype for `horizon` passes of the schedule with `alpha`."""
     if not scene.water.enabled:
         raise ValueError("aim_at_view: the scene has no [water] footprint to aim at")
     if key is None:
@@ -121,39 +129,45 @@ def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
     under = (found & (p[:, 1] < level) & (p[:, 0] >= fx0) & (p[:, 0] < fx1)
              & (p[:, 2] >= fz0) & (p[:, 2] < fz1))
     G = int(grid)
+    cam = scene.camera
+    pixel = 2.0 * float(cam.tan_half_fov) / cam.height
+    fp = float(np.median(dist[found])) * pixel if found.any() else float("nan")
+    _, rb = bounding_sphere(scene)
+    r = radius_pixels * fp / float(rb) if math.isfinite(fp) else RenderConfig.radius
+    # not below what the hash grid resolves at the scene's extent for `horizon` passes of
+    # the progressive schedule (`_merge.check_precise`; the grid's radius shrinks as
+    # i^((alpha - 1) / 3)): in float32 a 120 m pool resolves >= 2.2 cm
+    r_min, _ = merge.precise_radius(scene)
+    floor = r_min * 1.01 * horizon ** ((1.0 - alpha) / 3.0) / float(rb)
+    r = min(max(r, floor, 1e-6), 1.0)
     if not under.any():
         rect, aim_map = (fx0, fx1, fz0, fz1), np.ones((G, G))
     else:
         # the casters' box on the plane, widened by their reach, clipped to the footprint;
         # the map over it: the cells within reach (plus one) of a caster
         cast = _casters(scene, p[under], level)
-        pix = 2.0 * float(scene.camera.tan_half_fov) / scene.camera.height * float(
-            np.median(dist[under]))
-        x0 = max(fx0, min(c[:, 0].min() - r - pix for c, r in cast))
-        x1 = min(fx1, max(c[:, 0].max() + r + pix for c, r in cast))
-        z0 = max(fz0, min(c[:, 1].min() - r - pix for c, r in cast))
-        z1 = min(fz1, max(c[:, 1].max() + r + pix for c, r in cast))
+        # a pixel's footprint there, plus the first pass's merge radius: gather points
+        # reach photons that far beyond what they see
+        pix = pixel * float(np.median(dist[under])) + r * float(rb)
+        x0 = max(fx0, min(c[:, 0].min() - w - pix for c, w in cast))
+        x1 = min(fx1, max(c[:, 0].max() + w + pix for c, w in cast))
+        z0 = max(fz0, min(c[:, 1].min() - w - pix for c, w in cast))
+        z1 = min(fz1, max(c[:, 1].max() + w + pix for c, w in cast))
         x1, z1 = max(x1, x0 + 1e-3 * (fx1 - fx0)), max(z1, z0 + 1e-3 * (fz1 - fz0))
         rect = (x0, x1, z0, z1)
         aim_map = np.zeros((G, G))
-        for c, r in cast:
+        for c, w in cast:
             i = np.clip(((c[:, 1] - z0) / (z1 - z0) * G).astype(int), 0, G - 1)
             j = np.clip(((c[:, 0] - x0) / (x1 - x0) * G).astype(int), 0, G - 1)
             seen = np.zeros((G, G), bool)
             seen[i, j] = True
-            rx = min(G, int(math.ceil((r + pix) / ((x1 - x0) / G))) + 1)
-            rz = min(G, int(math.ceil((r + pix) / ((z1 - z0) / G))) + 1)
+            rx = min(G, int(math.ceil((w + pix) / ((x1 - x0) / G))) + 1)
+            rz = min(G, int(math.ceil((w + pix) / ((z1 - z0) / G))) + 1)
             pad = np.pad(seen, ((rz, rz), (rx, rx)))
             for di in range(-rz, rz + 1):  # aimed: a caster lies within reach
                 for dj in range(-rx, rx + 1):
                     aim_map = np.maximum(aim_map,
                                          pad[rz + di:rz + di + G, rx + dj:rx + dj + G])
-    cam = scene.camera
-    pixel = 2.0 * float(cam.tan_half_fov) / cam.height
-    fp = float(np.median(dist[found])) * pixel if found.any() else float("nan")
-    _, rb = bounding_sphere(scene)
-    r = radius_pixels * fp / float(rb) if math.isfinite(fp) else RenderConfig.radius
-    r = min(max(r, 1e-6), 1.0)
     return ViewGuide(aim_map, np.asarray(rect), r, fp, int(under.sum()), int(p.shape[0]))
 
 
@@ -164,9 +178,10 @@ def aim_at_view(scene: Scene, config: RenderConfig | None = None, key=None, **kw
     (`[[lights]] aim > 0`)."""
     if not any(a > 0 for a in scene.lights.aim):
         raise ValueError("aim_at_view: the scene has no aimed light (set [[lights]] aim)")
-    g = view_guide(scene, key, **kw)
+    config = config or RenderConfig()
+    g = view_guide(scene, key, alpha=config.alpha, **kw)
     dt = scene.lights.aim_map.dtype
     scene = eqx.tree_at(lambda s: (s.lights.aim_map, s.lights.aim_rect), scene,
                         (jnp.asarray(g.aim_map, dt), jnp.asarray(g.aim_rect, dt)))
-    config = dataclasses.replace(config or RenderConfig(), radius=g.radius)
+    config = dataclasses.replace(config, radius=g.radius)
     return scene, config, g

@@ -61,6 +61,16 @@ def pass_radius(cfg: RenderConfig, scene: Scene, pass_index) -> Radii:
                  jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 3.0)))
 
 
+def precise_radius(scene: Scene) -> tuple[float, float]:
+    """(smallest merging radius in metres the hash grid resolves in the scene's float dtype
+    at the scene's extent, that extent |coordinate| + span in metres): `check_precise`."""
+    lo, hi = (np.asarray(b, np.float64) for b in np.asarray(scene.bounds))
+    span = float(np.max(np.maximum(np.abs(lo), np.abs(hi)) + (hi - lo)))
+    u = float(np.finfo(np.dtype(scene.bounds.dtype)).eps) / 2
+    cells = hashgrid.CELL_MARGIN / (32.0 * u) - 2.0
+    return span / (cells * 2.0 * (1.0 + hashgrid.CELL_MARGIN)), span
+
+
 def check_precise(scene: Scene, cfg: RenderConfig, pass_index) -> None:
     """Host side, before a pass: raise a one-line ValueError naming `config.radius` if the
     hash grid cannot resolve pass `pass_index`'s merging radius in the scene's float dtype
@@ -71,11 +81,8 @@ def check_precise(scene: Scene, cfg: RenderConfig, pass_index) -> None:
     resolves ~10^8 times smaller radii. No merging: nothing to check."""
     if cfg.techniques.merging is None:
         return
+    r_min, span = precise_radius(scene)
     lo, hi = (np.asarray(b, np.float64) for b in np.asarray(scene.bounds))
-    span = float(np.max(np.maximum(np.abs(lo), np.abs(hi)) + (hi - lo)))
-    u = float(np.finfo(np.dtype(scene.bounds.dtype)).eps) / 2
-    cells = hashgrid.CELL_MARGIN / (32.0 * u) - 2.0
-    r_min = span / (cells * 2.0 * (1.0 + hashgrid.CELL_MARGIN))
     rb = 0.5 * float(np.linalg.norm(hi - lo))
     i = float(np.max(np.asarray(pass_index))) + 1.0
     r = cfg.radius * rb * i ** ((cfg.alpha - 1.0) / 3.0)  # the grid's (the larger) radius

@@ -45,9 +45,9 @@ from .test_merge import expected as expected_from_above
 K = 4.0
 
 
-def _aimed(doc, aim):
+def _aimed(doc, aim, dtype=jnp.float32):
     doc["lights"][0]["aim"] = aim
-    return jaxvcm.scene_from_dict(doc)
+    return jaxvcm.scene_from_dict(doc, dtype=dtype)
 
 
 def _sky_pool(aim):
@@ -235,7 +235,7 @@ def test_light_beside_the_pool_is_the_same_aimed_or_not(alg):
 
 
 # ---------------------------------------------------------------- (4) aimed where the camera looks
-def _flat_pool(width, aim):
+def _flat_pool(width, aim, dtype=jnp.float32):
     # benchmarks/aim_sweep.py's pool: width x width, 1.2 m deep, black walls, sun 14 deg
     # from the zenith, camera 3 m above the centre looking down, 2 deg, 8 x 8 pixels
     h, th = 0.5 * width, math.radians(14.0)
@@ -248,23 +248,31 @@ def _flat_pool(width, aim):
                     "floor_material": "floor", "wall_material": "wall"}],
         "water": {"level": 0.0, "sigma_a": list(SIGMA_A), "sigma_s": 0.0, "ior": ETA},
         "lights": [{"type": "sun", "direction": [-math.sin(th), -math.cos(th), 0.0],
-                    "irradiance": E_}]}, aim)
+                    "irradiance": E_}]}, aim, dtype)
 
 
 def test_view_guide_aims_at_the_caster_and_sizes_the_radius():
     # The camera sees the floor straight below through 4.2 m of path: one pixel's footprint
     # is 4.2 x 2 tan(1 deg) / 8 = 1.833 cm (refraction at normal incidence does not change
     # it to first order), the first-pass radius that (radius_pixels = 1) as a fraction of
-    # the bounding radius. The sun's refracted ray comes down to the floor's centre from
+    # the bounding radius, unless the grid's precision needs more (below). The sun's refracted ray comes down to the floor's centre from
     # x = 1.2 tan(theta_t) (sin theta_t = sin 14 deg / 1.33) on the plane, z = 0: the map
     # aims there, inside a box of a few decimetres (the seen spot is ~15 cm wide), and not
     # at the mirrored point x < 0 a symmetric guess would also take.
     from jaxvcm._scene import bounding_sphere
+    # The radius is not below what a float32 hash grid resolves at the pool's extent
+    # (|x| 60 m + 120 m = 180 m: cells >= 180 / (2^12 - 2) / (1 + 2^-7) m, i.e. radii
+    # >= 2.18 cm) for 10^4 passes of the schedule (x 1.01 x 10^4^(0.25 / 3) = 2.154):
+    # 4.75 cm here; a float64 scene takes the footprint.
     sc = _flat_pool(120.0, 0.9)
     sc2, cfg, g = jaxvcm.aim_at_view(sc, RenderConfig(algorithm="vcm", max_depth=4))
     fp = 4.2 * 2.0 * math.tan(math.radians(1.0)) / 8
     assert abs(g.footprint / fp - 1.0) < 0.01, (g.footprint, fp)
-    assert abs(cfg.radius * float(bounding_sphere(sc)[1]) / fp - 1.0) < 0.01
+    floor = 180.0 / (4094 * 2 * (1 + 2**-7)) * 1.01 * 1e4 ** (0.25 / 3)
+    assert abs(cfg.radius * float(bounding_sphere(sc)[1]) / floor - 1.0) < 0.01
+    sc64 = _flat_pool(120.0, 0.9, dtype=jnp.float64)
+    _, cfg64, _ = jaxvcm.aim_at_view(sc64, RenderConfig(algorithm="vcm", max_depth=4))
+    assert abs(cfg64.radius * float(bounding_sphere(sc64)[1]) / fp - 1.0) < 0.01
     x0, x1, z0, z1 = g.aim_rect
     assert (x1 - x0) * (z1 - z0) < 0.25, g.aim_rect  # of a 14400 m^2 footprint
     s_t = math.sin(math.radians(14.0)) / ETA

@@ -71,3 +71,15 @@ def test_cornell_bdpt_and_vcm_agree():
     assert np.all(se < 0.0125 * mb), f"SE of the difference {se / mb} cannot see 5 %"
     z = np.abs(mv - mb) / se
     assert np.all(z < 4.0), f"bdpt {mb} vs vcm {mv}: {z} standard errors"
+
+
+def test_cornell_background_pt_bdpt_and_vcm_agree():
+    # SmallVCM's scene 3 (the background light through the open front, glossy floor,
+    # mirror and glass spheres): a large light, so pt converges too. pt (NEE + BSDF hits),
+    # bdpt and vcm (merging at the default radius) estimate the same image
+    # (depth 4): 2 x 2 block means within 4 combined standard errors, and image means
+    # whose combined standard error is below 1.25 % (a 5 % difference would fail;
+    # test_bidir.assert_algorithms_agree).
+    from .test_bidir import assert_algorithms_agree
+    assert_algorithms_agree(_load("cornell_background"), ("bdpt", "pt", "vcm"), 4, seed=41,
+                            passes=16, spp=16, blocks=2, what="cornell_background")
