@@ -78,6 +78,7 @@ class PassStats(eqx.Module):
     merge_candidates: Int[Array, ""]  # longest hash-grid candidate list of a gather point
     photon_overflow: Bool[Array, ""]  # more valid photons than the grid's photon room
     merge_photons: Int[Array, ""]  # valid photons of the pass (largest chunk)
+    merge_imprecise: Bool[Array, ""]  # the hash grid could not resolve the merging radius
 
 
 class PassState(eqx.Module):
@@ -168,7 +169,7 @@ def setup(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
         etas = merge.log_etas(radius, N, dt)
     zero, no = jnp.zeros((), jnp.int32), jnp.zeros((), bool)
     return dataclasses.replace(st, keys=jax.random.split(st.key, 5), radius=radius,
-                               etas=etas, merged=merge.Merged(no, zero, zero, no))
+                               etas=etas, merged=merge.Merged(no, zero, zero, no, no))
 
 
 # ---- camera rays: one per path through its pixel, and the camera subpaths' uniforms
@@ -302,9 +303,10 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 
 
 def _merge_stats(st: PassState):
-    """PassStats' merging fields (overflow, candidates, photon overflow, photons)."""
+    """PassStats' merging fields (overflow, candidates, photon overflow, photons,
+    imprecise grid)."""
     m = st.merged
-    return m.overflow, m.need, m.photon_overflow, m.photons
+    return m.overflow, m.need, m.photon_overflow, m.photons, m.imprecise
 
 
 # ---- film: every technique's image, and the pass's counts
@@ -437,12 +439,14 @@ def _integrate_chunks(scene, key, cfg, pass_index):
                           stats.merge_overflow | s2.merge_overflow,
                           jnp.maximum(stats.merge_candidates, s2.merge_candidates),
                           stats.photon_overflow | s2.photon_overflow,
-                          jnp.maximum(stats.merge_photons, s2.merge_photons))
+                          jnp.maximum(stats.merge_photons, s2.merge_photons),
+                          stats.merge_imprecise | s2.merge_imprecise)
         return (img + i2, bad + b2, stats), None
 
     zero = jnp.zeros((), jnp.int32)
     init = (jnp.zeros((H * W, C), cam.origin.dtype), zero,
-            PassStats(zero, zero, jnp.zeros((), bool), zero, jnp.zeros((), bool), zero))
+            PassStats(zero, zero, jnp.zeros((), bool), zero, jnp.zeros((), bool), zero,
+                      jnp.zeros((), bool)))
     (img, bad, stats), _ = jax.lax.scan(body, init, jnp.arange(cfg.chunks, dtype=jnp.int32))
     return img.reshape(H, W, C), bad, stats
 

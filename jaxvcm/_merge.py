@@ -236,6 +236,8 @@ class Merged(NamedTuple):
     need: Array  # longest candidate list of a gather point
     photons: Array  # valid photons (the photon room that would have been enough)
     photon_overflow: Array  # more valid photons than photon room
+    imprecise: Array  # the hash grid cannot resolve the radius at the photons' coordinates
+    # in the scene's float dtype (`_hashgrid.build`'s `precise`): neighbours may be missed
 
 
 def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpath.Vertex,
@@ -293,7 +295,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
                                                   _search_radius(radius),
                                                   max_candidates=cfg.merge_capacity,
                                                   return_need=True, valid=has)
-    rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow)
+    rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow, ~ph.grid.precise)
     est = zbeta * total / (kernel_size(zmed, radius) * N)[:, None]
     est = jnp.where(has[:, None], est, 0.0)
     # ---- emission along the delta prefix and at the gather vertex (weight 1) ----
@@ -384,7 +386,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
                                                   _search_radius(radius),
                                                   max_candidates=cfg.merge_capacity,
                                                   return_need=True, valid=zvalid)
-    rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow)
+    rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow, ~ph.grid.precise)
     zmed = flat(cam.medium, ci)
     if by_photon:  # the same arithmetic per photon row
         est = (flat(cam.beta, ci)[:, None, :] * total

@@ -36,6 +36,9 @@ class Diagnostics(eqx.Module):
     merge_candidates: Array  # longest candidate list of a gather point: the room needed
     photon_overflow: Array  # more valid photons than the hash grid's photon room
     merge_photons: Array  # valid photons (of the largest chunk): the photon room needed
+    merge_imprecise: Array  # the hash grid could not resolve the merging radius in the
+    # scene's float dtype at the photons' coordinates (neighbours may have been missed: the
+    # pass is wrong; host drivers refuse such a radius first, `_merge.check_precise`)
 
 
 def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig(),
@@ -58,6 +61,7 @@ def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderCo
         merge_candidates=stats.merge_candidates,
         photon_overflow=stats.photon_overflow,
         merge_photons=stats.merge_photons,
+        merge_imprecise=stats.merge_imprecise,
     )
     return img, diag
 
@@ -83,6 +87,10 @@ def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overfl
         _merge.check_precise(inner, config, pass_index)
     while True:
         est, diag = jitted_pass(scene, key, config, pass_index)
+        if _imprecise(diag):  # the grid's own flag: a backstop behind check_precise
+            raise ValueError(f"config.radius: the hash grid could not resolve pass "
+                             f"{int(np.max(np.asarray(pass_index))) + 1}'s merging radius at "
+                             f"the photons' coordinates; use a larger radius or a float64 scene")
         if not bool(np.any(overflow_of(diag))):
             return est, diag, config
         need = None if need_of is None else int(np.max(np.asarray(need_of(diag))))
@@ -91,6 +99,13 @@ def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overfl
             p_over, photons = photons_of(diag)
             p_over, photons = bool(np.any(p_over)), int(np.max(np.asarray(photons)))
         config = _merge.more_room(config, need, p_over, photons)
+
+
+def _imprecise(diag) -> bool:
+    """`Diagnostics.merge_imprecise` of a pass's diagnostics (plain, spectral's `.core`, or
+    inside a tuple), as a host bool."""
+    cands = [diag, getattr(diag, "core", None)] + (list(diag) if isinstance(diag, tuple) else [])
+    return any(isinstance(d, Diagnostics) and bool(np.any(d.merge_imprecise)) for d in cands)
 
 
 def _host_pass(scene, key, config, pass_index=0):

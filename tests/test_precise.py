@@ -76,3 +76,18 @@ def test_cli_refuses_it_in_one_line(tmp_path, capsys):
                "--width", "8", "--height", "8", "--out", str(tmp_path / "x.exr"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "config.radius" in err[0], err
+
+
+@pytest.mark.parametrize("alg", ["ppm", "vcm"])
+def test_the_flag_is_in_the_diagnostics_under_a_users_jit(sun, alg):
+    # A user's own jit has no host check: the grid's traced flag comes back in
+    # Diagnostics.merge_imprecise. One program (the radius schedule is traced through the
+    # pass index): alpha 0.1 gives r_i = r_1 i^(-0.3), so r_1 = 4e-4 (above the 3.56e-4
+    # threshold) is r_1 x 10^4^-0.3 = 2.5e-5 at pass 10^4, 14x below it at any photon
+    # extent of at least 1/14 of the box's
+    cfg = RenderConfig(algorithm=alg, max_depth=3, radius=4e-4, alpha=0.1)
+    f = jax.jit(jaxvcm.render_pass, static_argnums=2)
+    _, ok = f(sun, jax.random.key(0), cfg, 0)
+    _, bad = f(sun, jax.random.key(0), cfg, 9999)
+    assert not bool(ok.merge_imprecise) and bool(bad.merge_imprecise)
+    assert _ok(sun, cfg, 0) and not _ok(sun, cfg, 9999)  # the host check agrees
