@@ -6,10 +6,14 @@ vcm adds merging, which carries most of the caustic under the glass sphere and t
 glossy floor's reflections, and reweights every connection, so a wrong glossy pdf in any
 technique (NEE, light tracing, connections, merges) would part them. Image means per
 channel over 32 passes (16 x 16 pixels, 8 spp, depth 10): measured rel. SE 0.64 % each,
-agreement to 0.2 %."""
+agreement to 0.2 % (independent seeds: the same seed made their pass means correlate at
+0.98, and the combined SE overstate the difference's). pt agrees with both at the same
+5 % bar, and in 2 x 2 block means, from 128 x 128 pixels at 1 spp (see its test: what makes
+pt noisy here is the light's silhouette, not the caustic)."""
 
 from __future__ import annotations
 
+import functools
 import os
 
 import numpy as np
@@ -56,21 +60,73 @@ def test_cornell_files_carry_smallvcm_numbers(name):
                                    rtol=1e-6)
 
 
-def _pass_means(alg, passes=32):
-    cfg = RenderConfig(algorithm=alg, max_depth=10, spp=8, radius=0.01)
-    _, _, imgs, bad = A.render_stats(_load("cornell_spheres"), cfg, passes)
+@functools.lru_cache(maxsize=None)
+def _block_means(alg, size=16, spp=8, passes=32, seed=0):
+    """cornell_spheres at depth 10: [passes, 2, 2, C] means of the image's 2 x 2 blocks, one
+    row per independent pass (their mean over the blocks is the pass's image mean). Cached:
+    bdpt's and vcm's renders serve both tests below."""
+    from .test_bidir import block_means
+    cfg = RenderConfig(algorithm=alg, max_depth=10, spp=spp, radius=0.01)
+    _, _, imgs, bad = A.render_stats(_load("cornell_spheres", size), cfg, passes, seed=seed)
     assert bad == 0
-    per = imgs.mean(axis=(1, 2))  # [passes, C]: independent samples of the image mean
-    return per.mean(0), per.std(0, ddof=1) / np.sqrt(per.shape[0])
+    out = block_means(imgs, 2)
+    out.setflags(write=False)
+    return out
+
+
+def _mean_se(x):
+    return x.mean(0), x.std(0, ddof=1) / np.sqrt(x.shape[0])
+
+
+def _assert_image_means_agree(ref, other, what):
+    # image means per channel (x.mean(axis=(1, 2)): [passes, C], i.i.d. samples); the SE of
+    # the difference must be below 1.25 %, so that a 5 % difference is 4 SE away and fails
+    (m0, s0), (m1, s1) = _mean_se(ref.mean(axis=(1, 2))), _mean_se(other.mean(axis=(1, 2)))
+    se = np.sqrt(s0 ** 2 + s1 ** 2)
+    assert np.all(se < 0.0125 * m0), f"{what}: SE of the difference {se / m0} cannot see 5 %"
+    z = np.abs(m1 - m0) / se
+    assert np.all(z < 4.0), f"{what}: {m0} vs {m1}: {z} standard errors"
 
 
 def test_cornell_bdpt_and_vcm_agree():
-    mb, sb = _pass_means("bdpt")
-    mv, sv = _pass_means("vcm")
-    se = np.sqrt(sb ** 2 + sv ** 2)
-    assert np.all(se < 0.0125 * mb), f"SE of the difference {se / mb} cannot see 5 %"
-    z = np.abs(mv - mb) / se
-    assert np.all(z < 4.0), f"bdpt {mb} vs vcm {mv}: {z} standard errors"
+    _assert_image_means_agree(_block_means("bdpt"), _block_means("vcm", seed=2), "bdpt vs vcm")
+
+
+# pt: 128 x 128 pixels at 1 spp (16384 camera paths a pass, as many as bdpt's 16 x 16 x 8),
+# 32 passes, its own seed: one new compiled program (pt's; it compiles as fast at any film).
+PT = dict(size=128, spp=1, passes=32, seed=1)
+
+
+def test_cornell_pt_agrees_with_bdpt_and_vcm():
+    # Why pt converges here: the light is an area light of finite radiance, and each pt
+    # sample (camera hits of the light, NEE, BSDF-sampled hits, power-heuristic weights
+    # <= 1, roulette survival = the largest reflectance channel) is bounded by about
+    # Le = 25: finite variance, so the passes' standard error measures pt's error. The
+    # caustic of the glass sphere, which pt reaches only by BSDF-sampled hits of the light
+    # through it, is not rare: pt's variance outside the light's own pixels, per path
+    # (G channel, per-pixel variances pooled, times a pass's paths), is 0.40-0.41 against
+    # bdpt's 0.22. What makes pt noisy is the light's silhouette: a camera ray hits the
+    # 25-radiance face or the dim ceiling beside it, and pt takes that hit at weight 1 (bdpt
+    # weights it against light tracing): Le^2 c (1 - c) per sample in each pixel that the
+    # light covers a part c of. Only the ~W edge pixels carry it, each 1 / W^2 of the mean,
+    # so at N paths a pass it adds ~1 / (W N) to the image mean's variance, and a finer film
+    # stratifies it (the same film: box pixels, uniform jitter, so the expected image mean
+    # and 2 x 2 block means do not depend on W). pt's per-path variance at N = 16384:
+    # 16 x 16 x 8 spp 3.0-3.4 (86-88 % in the light's 8 pixels), 32 x 32 x 16 2.0,
+    # 64 x 64 x 4 1.05, 128 x 128 x 1 0.65. Per pass the image mean's rel. SD is 17-21 % at
+    # 16 x 16 x 8 (2048 paths: ~1800 passes, ~2 min here, for 0.45 %) and 2.3 % at 128 x
+    # 128 x 1. Measured over these passes (rel. SE R, G, B): pt 0.45, 0.52, 0.47 %; bdpt
+    # 0.65, 0.63, 0.56 % and vcm 0.64, 0.62, 0.55 % (vcm measured at seed 0);
+    # differences' SE 0.72-0.82 %, pt within 0.8 SE (0.3-0.7 %) of both. A 5 % error
+    # (pt or bdpt scaled by 1.05 or 0.95) fails at 5.2-7.5 SE. 2 x 2 block means (bdpt's
+    # sphere blocks: SE 1.7-4.3 %) within 4 SE.
+    from .test_bidir import assert_close
+    pt = _block_means("pt", **PT)
+    for name, seed in (("bdpt", 0), ("vcm", 2)):
+        ref = _block_means(name, seed=seed)
+        _assert_image_means_agree(ref, pt, f"{name} vs pt")
+        assert_close(*_mean_se(ref), *_mean_se(pt), k=4.0, rel=1e-3,
+                     what=f"2 x 2 block means, {name} vs pt")
 
 
 def test_cornell_background_pt_bdpt_and_vcm_agree():
