@@ -37,6 +37,7 @@ from . import _path as path
 from . import _subpath as subpath
 from ._config import RenderConfig
 from ._scene import Scene
+from ._uniforms import Uniforms
 
 
 class Technique(NamedTuple):
@@ -177,7 +178,7 @@ def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     cam = scene.camera
     P, N, D, dt = _dims(scene, cfg)
     pixel = _path_pixels(scene, cfg, st)
-    u_cam = jax.random.uniform(st.keys[0], (2, N), dt)
+    u_cam = Uniforms.draw(st.keys[0], (1, 2, N), dt).dense()[0]
     o, d = jax.vmap(camera.generate_ray, in_axes=(None, 0, 0, 0))(cam, pixel, u_cam[0], u_cam[1])
     _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
     c0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(
@@ -185,7 +186,7 @@ def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     if cfg.mis_form == "recursive":  # z_0's carry: nothing starts at the pinhole
         c0 = c0._replace(mis=mis_recursive.start_carry(cfg, jnp.ones((N,), dt), False,
                                                        st.mis_etas[0], dt))
-    uc = jax.random.uniform(st.keys[1], (D, N, subpath.N_UNIFORMS), dt)
+    uc = Uniforms.draw(st.keys[1], (D, N, subpath.N_UNIFORMS), dt)  # hashed where used
     return dataclasses.replace(st, origins=o, cam_start=c0, cam_u=uc)
 
 
@@ -193,13 +194,13 @@ def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 def light_emission(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, _, dt = _dims(scene, cfg)
     e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
-        scene, jax.random.uniform(st.keys[3], (N, 5), dt))
+        scene, Uniforms.draw(st.keys[3], (1, N, 5), dt).dense()[0])
     l0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
     if cfg.mis_form == "recursive":  # y_0's carry: the emitter hit starts there (tr. 31-33)
         l0 = l0._replace(mis=mis_recursive.start_carry(
             cfg, jax.lax.stop_gradient(e.pdf_pos), cfg.techniques.emitter_hits & ~e.delta,
             st.mis_etas[0], dt))
-    ul = jax.random.uniform(st.keys[4], (_light_steps(cfg), N, subpath.N_UNIFORMS), dt)
+    ul = Uniforms.draw(st.keys[4], (_light_steps(cfg), N, subpath.N_UNIFORMS), dt)
     return dataclasses.replace(st, emission=e, light_start=l0, light_u=ul)
 
 
@@ -260,7 +261,7 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 # ---- [s = 1] next-event estimation at camera vertices
 def next_event(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, D, dt = _dims(scene, cfg)
-    u_nee = jax.random.uniform(st.keys[2], (D - 1, N, 3), dt)
+    u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt).dense()
     return _add(st, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas, st.parts))
 
 

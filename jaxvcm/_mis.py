@@ -12,10 +12,11 @@ Working with c in log space, the weight of technique s is
     w_s = n_s p_s^beta / sum_{valid j} n_j p_j^beta = exp(-logsumexp_j [beta (c_j - c_s) + log n_j - log n_s])
 which cannot overflow or underflow however long the path or tiny the pdfs (float32 safe).
 
-Delta vertices. After a delta (specular) vertex the pdf of the next vertex is a Dirac
-delta in both directions; following pbrt these pdfs are remapped to 1 (the tracer stores
-1), and every technique that would connect at a delta vertex is invalid, so the Diracs
-never appear in a ratio. Zero pdfs (e.g. the back of a one-sided light seen from the
+Delta vertices. After a delta (specular) vertex the pdf of the next vertex carries a
+Dirac delta in both directions; the tracer stores the Dirac as 1 but keeps its conversion
+to the next vertex's measure (cos / d^2: `_subpath` module doc, which says why pbrt's
+remap of the whole pdf to 1 is wrong with merging), and every technique that would
+connect at a delta vertex is invalid, so the Diracs never appear in a ratio. Zero pdfs (e.g. the back of a one-sided light seen from the
 reverse side) make a technique impossible; they are excluded explicitly rather than
 through 0 * inf.
 
@@ -57,7 +58,7 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
                merge=False) -> Float[Array, ""]:
     """Weight of technique s for the path x_0..x_k (entries i > k are ignored).
 
-    a, b: per-vertex light- and camera-side pdfs (delta-remapped, RR included);
+    a, b: per-vertex light- and camera-side pdfs (Diracs as 1, RR included);
     delta: per-vertex delta flag; delta_light: x_0 is on a delta light (the sun);
     infinite_light: x_0 is at infinity (sun, sky): it cannot be joined to the pinhole (k = 1);
     log_n_lt: log of the light-tracing multiplicity N_light; beta: 1 balance, 2 power.

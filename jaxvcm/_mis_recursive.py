@@ -17,8 +17,8 @@ Notation
 --------
 Full path x_0 .. x_k (x_0 on the light, x_k the pinhole); a_i, b_i the light- and
 camera-side pdfs of x_i in area / volume measure (the cosines, squared distances,
-distance-sampling and Russian-roulette factors already folded in, delta pdfs remapped
-to 1); eta_i the merging kernel times N at x_i (pi r^2 N on surfaces, 4/3 pi r^3 N in the
+distance-sampling and Russian-roulette factors already folded in, the Dirac of a pdf
+after a delta vertex counted as 1, its conversion kept: `_subpath` module doc); eta_i the merging kernel times N at x_i (pi r^2 N on surfaces, 4/3 pi r^3 N in the
 medium); nu_j the multiplicity of connection technique j (N_light for light tracing,
 j = k; 1 otherwise). Connection technique j (j light vertices) has
 p_j = prod_{i<j} a_i prod_{i>=j} b_i; merging at x_i has n p = eta_i a_i p_i.
@@ -362,7 +362,7 @@ def start_carry(cfg, A0, E0, leta0, dtype) -> Carry:
 def carry_step(cfg, c: Carry, ctx: Context, camera, index, pdf_fwd, rev, q_loc, q_next,
                delta, medium, prev_delta) -> tuple[Carry, Record]:
     """One vertex of a subpath (one lane), from what `_subpath.step` has just computed:
-    pdf_fwd its own-direction pdf (area / volume, RR-free, delta-remapped), rev the reverse
+    pdf_fwd its own-direction pdf (area / volume, RR-free, Diracs as 1), rev the reverse
     pdf of the vertex the ray left, q_loc its local survival, q_next the survival the
     subpath applies when it continues, delta / medium its flags, prev_delta the left
     vertex's; `camera`: a camera subpath (bool, possibly traced); index + 1 the vertex's

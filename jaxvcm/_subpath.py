@@ -6,14 +6,28 @@ not) and what is recorded about emitters. Per vertex v_j the record holds positi
 normal or medium flag, the direction back to v_{j-1}, the throughput arriving at v_j, and
 the pdfs that explicit-sum MIS needs (`_mis.py`):
     pdf_fwd  p(v_j | v_{j-1}) in area (surface) / volume (medium) measure, or solid angle
-             for a vertex at infinity (escaped to the sky); 1 after a delta vertex,
+             for a vertex at infinity (escaped to the sky),
     pdf_rev  p(v_{j-1} | v_j): the reverse pdf of the previous vertex, known once v_j has
-             sampled its own continuation (1 if v_j is a delta vertex),
+             sampled its own continuation,
 both without Russian roulette: the survival probability of a vertex depends on its index
 along whichever subpath generates it, so `q` (the vertex's local survival probability)
 is stored and the MIS assembly applies rr(index, q) for either direction.
 The distance-sampling pdfs of the water (p_scatter for a medium end, P_pass for a surface
 end; `_media.py`) are part of the area/volume pdfs of segments that run through water.
+
+Delta vertices. A vertex sampled by a delta lobe (or sampling its predecessor by one) has
+a Dirac in its solid-angle pdf; both subpath directions through a delta vertex carry the
+same Dirac, so it cancels in every ratio of two techniques and is stored as 1. The
+conversion to the next vertex's measure (cos / d^2, and the water's distance factor) is
+kept: the camera-side pdf of x_0 reached through a delta x_1 is cos_0 / d_01^2, the
+light-side pdf of x_2 reached through it cos_2 / d_12^2, and in the ratio of merging at
+x_2 to the camera hitting the light x_0 the distances d_01, d_12 cancel against those of
+the non-delta pdfs at x_1. (pbrt's BDPT remaps the converted pdf itself to 1, which drops
+cos / d^2 and leaves a stray (d_12 / d_01)^2 in that ratio: harmless among connections,
+which never join at a delta vertex, but with merging it gave the camera's hit of the
+pool's light through the water weight ~1 against merging for wall points near the
+waterline: rare samples 10^2-10^4 times the pixel mean. docs/design.md, "Delta vertices
+and merging".)
 """
 
 from __future__ import annotations
@@ -34,6 +48,7 @@ from . import _vec as vec
 from ._config import RenderConfig
 from ._queue import Packed, round_width
 from ._scene import MAT_DIFFUSE, MAT_GLOSSY, MAT_NAMES, Scene, Water
+from ._uniforms import Uniforms
 from ._vec import Vec3
 
 # vertex kind of a scattering event in the water: after every MAT_* kind, never equal to one
@@ -52,8 +67,8 @@ class Vertex(NamedTuple):
     n: Vec3  # geometric normal (surface vertices)
     wo: Vec3  # unit direction from this vertex back to the previous one
     beta: Array  # [C] throughput arriving at the vertex (before it scatters)
-    pdf_fwd: Array  # p(v_j | v_{j-1}), RR-free, delta-remapped (see module doc)
-    pdf_rev: Array  # p(v_{j-1} | v_j), RR-free, delta-remapped
+    pdf_fwd: Array  # p(v_j | v_{j-1}), RR-free, Diracs as 1 (see module doc)
+    pdf_rev: Array  # p(v_{j-1} | v_j), RR-free, Diracs as 1
     kind: Array  # MAT_* of the surface, KIND_MEDIUM, or KIND_NONE
     mat: Array  # material id (surfaces)
     light: Array  # light id of an emitting surface hit (-1 otherwise)
@@ -207,7 +222,12 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     # ---- forward pdf of this vertex ----
     fwd_area = to_area(s.pdf_w, scatter, n, s.d, dist, s.in_water, water, s.prev_inf)
     pdf_fwd = jnp.where(esc, s.pdf_w, fwd_area)
-    pdf_fwd = jnp.where(s.prev_delta, 1.0, pdf_fwd)
+    # after a delta vertex: its Dirac (solid angle) is 1, the conversion to this vertex's
+    # area / volume measure is kept (module doc: the distances then cancel between
+    # techniques; an escaped vertex keeps solid angle: 1)
+    geo = to_area(jnp.ones_like(s.pdf_w), scatter, n, s.d, dist, s.in_water, water,
+                  s.prev_inf)
+    pdf_fwd = jnp.where(s.prev_delta, jnp.where(esc, 1.0, geo), pdf_fwd)
 
     # ---- emission seen by camera paths ----
     if radiance is False:
@@ -241,7 +261,10 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     rev_w = bsdf_pdf(scene, kind, mat, scatter, wi, wo, n)
     rev = to_area(rev_w, s.prev_medium, s.n_prev, wo, dist, s.in_water, water, False)
     rev = jnp.where(s.prev_conv, rev_w, rev)
-    rev = jnp.where(delta, 1.0, rev)
+    # a delta vertex samples the previous one by a Dirac: 1, converted to its measure
+    geo_r = to_area(jnp.ones_like(rev_w), s.prev_medium, s.n_prev, wo, dist, s.in_water,
+                    water, False)
+    rev = jnp.where(delta, jnp.where(s.prev_conv, 1.0, geo_r), rev)
 
     # ---- Russian roulette (local survival probability, applied by index) ----
     q_loc = jnp.where(scatter, Q_SPECULAR,
@@ -280,7 +303,8 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
 
 def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,
           limit=None, mis_ctx=None) -> tuple[Vertex, Array]:
-    """Trace L subpaths from batched start states; u: [n_steps, L, N_UNIFORMS].
+    """Trace L subpaths from batched start states; u: [n_steps, L, N_UNIFORMS], an array or
+    a `_uniforms.Uniforms` table (hashed per round for the round's lanes).
     `radiance`: True (camera subpaths), False (light subpaths) or an [L] per-lane flag
     (`trace_both`); `limit`: optional [L] per-lane step count (<= n_steps).
     Returns the records [n_steps, L] (dead records hold `_dead_records`' values) and each
@@ -309,6 +333,8 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     rounds = (n_steps * L) // W + n_steps
     if W >= L:
         return _trace_all(scene, cfg, radiance, s0, u, n_steps, mis_ctx)
+    if isinstance(u, Uniforms) and not u.lazy:  # no lazy draws: gather from the table
+        u = u.dense()
     vstep = jax.vmap(lambda sc, c, r, i, st, ui, tw: step(sc, c, r, i, st, ui, tw, mis_ctx),
                      in_axes=(None, None, None if static else 0, 0, 0, 0, 0))
     # records and lane states packed per dtype: one gather / scatter per dtype and round
@@ -329,7 +355,9 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         # the water's closest hits only for the rays that meet its box (`water_hits`)
         tw = (geometry.water_hits(scene.water, s_g.o, s_g.d, lane < L, cfg.march_steps,
                                   WATER_SPLIT) if scene.water.enabled else None)
-        s_new, v = vstep(scene, cfg, mode, kg, s_g, u[kg, g], tw)
+        # this round's uniforms: hashed for its lanes alone (`_uniforms`), or gathered
+        ug = u.rows_at(kg, g, lane[0] < L) if isinstance(u, Uniforms) else u[kg, g]
+        s_new, v = vstep(scene, cfg, mode, kg, s_g, ug, tw)
         S = {d: S[d].at[lane].set(x, mode="drop") for d, x in state_pack.pack(s_new).items()}
         k = k.at[lane].add(1, mode="drop")
         # v_k's record at (k, lane); the pdf_rev it computed belongs to v_{k-1} (y_0 / z_0
@@ -367,6 +395,8 @@ def _trace_all(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_st
         return vstep(scene, cfg, radiance, i, s, ui)
 
     idx = jnp.arange(n_steps, dtype=jnp.int32)
+    if isinstance(u, Uniforms):  # every lane every step: the dense table
+        u = u.dense()
     _, verts = jax.lax.scan(body, s0, (idx, u[:n_steps]))
     # pdf_rev was computed at v_{j+1} for v_j: shift it back by one vertex
     rev_next = jnp.concatenate([verts.pdf_rev[1:], jnp.ones_like(verts.pdf_rev[:1])], axis=0)
@@ -408,9 +438,14 @@ def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: i
     the 2N lanes carry their transport mode as a per-lane flag, and each lane computes
     exactly what its own `trace` would (its uniforms, its mode, its number of steps). Returns (camera records
     [n_cam, N], (light records [n_light, N], y_0's reverse pdf))."""
-    N = u_cam.shape[1]
-    pad = jnp.zeros((n_cam - n_light,) + u_light.shape[1:], u_light.dtype)
-    u = jnp.concatenate([u_cam[:n_cam], jnp.concatenate([u_light[:n_light], pad])], axis=1)
+    if isinstance(u_cam, Uniforms):  # side by side, hashed where used (`_uniforms`)
+        N = u_cam.lanes
+        assert u_cam.rows == (n_cam,) and u_light.rows == (n_light,)
+        u = u_cam.beside(u_light)
+    else:
+        N = u_cam.shape[1]
+        pad = jnp.zeros((n_cam - n_light,) + u_light.shape[1:], u_light.dtype)
+        u = jnp.concatenate([u_cam[:n_cam], jnp.concatenate([u_light[:n_light], pad])], axis=1)
     s0 = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), cam0, light0)
     mode = jnp.arange(2 * N) < N
     verts, rev0 = trace(scene, cfg, mode, s0, u, n_cam, jnp.where(mode, n_cam, n_light),

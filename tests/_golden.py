@@ -8,6 +8,10 @@ before the re-layout: `git worktree add /tmp/old 4dc2ea4`, then run it there).
 `python -m tests._golden` writes them to `tests/data/golden.npz`; `tests/test_golden.py`
 recomputes them and compares. They were recorded before the package was re-laid out
 (issue: architecture), so every later change must reproduce them or explain why not.
+Changed since: `bdpt_pool` re-recorded on 2026-12-05 (issue 12) when the pdfs after a delta
+vertex began to keep their conversion to area (`_subpath` module doc, docs/design.md
+"Delta vertices and merging"): the MIS weights of its paths through the water surface
+changed, the samples did not (the other cases reproduce their old values).
 """
 
 from __future__ import annotations
