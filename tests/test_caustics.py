@@ -26,6 +26,11 @@ Tolerance per tile (tile means over 8 x 8 pixels of a 32 x 32 image, every chann
     under water MIS weights in [0, 1] that vary slowly across a tile scale it down.
   * 2% ref: the reference's own accuracy at this tile size (the histogram + supersampled
     camera agrees with the histogram-free pinhole splat to < 1%, tested below).
+The whole image's mean is held to the 5% bar: its standard error below 1.25% of the value.
+For that VCM's sun aims 90% of its photons at the water's footprint (`aim`, issue 13:
+the same expectation, tests/test_aim.py; the rest still cover the scene's bounding disk),
+which most of them otherwise miss: SE of the image mean ~0.5% after 4P passes (1.0%
+without aiming at 4P = 96).
 """
 
 from __future__ import annotations
@@ -45,7 +50,8 @@ K = 4.5
 SIZE = 32
 TILE = 8  # pixels per tile side for the tolerance checks (4 x 4 tiles)
 FINE = 4  # pixels per tile side for the convergence check (8 x 8 tiles)
-P = 24  # passes; the convergence check compares P with 4 P
+P = 32  # passes; the convergence check compares P with 4 P
+AIM = 0.9  # fraction of the sun's photons aimed at the water's footprint (VCM renders)
 RADIUS = 0.02  # first-pass merging radius, fraction of the scene's bounding radius
 ALPHA = RenderConfig().alpha
 REF_ACC = 0.02
@@ -162,7 +168,9 @@ def vcm_runs(pool, floor_map):
     """Per view: the VCM pass images [4P, H, W, C] and the references."""
     out = {}
     for view, v in VIEWS.items():
-        scene = jaxvcm.scene_from_dict(scene_doc(view), view)
+        doc = scene_doc(view)
+        doc["lights"][0]["aim"] = AIM
+        scene = jaxvcm.scene_from_dict(doc, view)
         cfg = RenderConfig(algorithm="vcm", max_depth=v["depth"], radius=RADIUS)
         imgs = render_passes(scene, cfg, 4 * P, v["seed"])
         cam = R.cam_from_dict(camera(view))
@@ -197,29 +205,44 @@ def test_vcm_matches_ray_mapping_reference(view, vcm_runs):
             # merging alone (weight 1): its expectation is the blurred reference
             rb = R.tiles(blurred[n], TILE)
             assert np.all(np.abs(m - rb) <= K * se + REF_ACC * rb)
-    # ... the comparison has teeth: after 4P passes the tolerance averages < 25% of a tile
-    # (measured 21-23% over five seed pairs; a missing 1/eta^2 from above would be a 77%
-    # error everywhere, a doubled one 43%), and it tightens
-    # with passes: its noise part halves, the radius part shrinks as r ~ i^(-1/8)
-    assert np.mean(tols[4 * P]) < 0.25, np.mean(tols[4 * P])
+    # ... the comparison has teeth: after 4P passes the tolerance averages < 16% of a tile
+    # (measured 13.2-13.9% over five seed pairs; 21-23% before aiming, at 4P = 96; a
+    # missing 1/eta^2 from above would be a 77% error everywhere, a doubled one 43%), and
+    # it tightens with passes: its noise part halves, the radius part shrinks as
+    # r ~ i^(-1/8) (measured ratio 0.54-0.65). A tile's own SE is ~2.5% of it, so the
+    # tiles see errors of ~13% and more; the 5% bar is the image mean's, below.
+    assert np.mean(tols[4 * P]) < 0.16, np.mean(tols[4 * P])
     assert np.mean(tols[4 * P]) < 0.7 * np.mean(tols[P])
-    # whole image: standard error ~1% after 4P passes, so this checks the overall scale
-    # (Fresnel, 1/eta^2, Beer-Lambert, the sun's irradiance) to a few percent
+    # whole image: the standard error after 4P passes must be below 1.25% of the value, so
+    # that a 5% error in the overall scale (Fresnel, 1/eta^2, Beer-Lambert, the sun's
+    # irradiance) is 4 SE away (measured 0.48-0.58% over five seed pairs). Its expectation:
+    # from above the blurred reference's mean (merging alone, weight 1), under water
+    # between that and the reference's (MIS weights in [0, 1]); the blur moves it by
+    # -0.26% and -0.4%. Within that, K SE + REF_ACC / 2 (the reference's accuracy for the
+    # mean: the under view's histogram and splat agree to 0.13%) is 3.2-3.6%: a planted
+    # +-5% error fails by 0.6% or more in all five seed pairs.
     x = imgs.mean(axis=(1, 2))
     mean, se_mean = x.mean(0), x.std(0, ddof=1) / np.sqrt(len(x))
     ref_mean = ref.mean(axis=(0, 1))
-    bias_mean = np.abs(blurred[4 * P].mean(axis=(0, 1)) - ref_mean)
+    blur_mean = blurred[4 * P].mean(axis=(0, 1))
     print(f"{view} image mean: rel err {mean / ref_mean - 1}, rel SE {se_mean / ref_mean}")
-    assert np.all(se_mean < 0.02 * ref_mean)
-    assert np.all(np.abs(mean - ref_mean) <= K * se_mean + bias_mean + 0.5 * REF_ACC * ref_mean)
+    assert np.all(se_mean < 0.0125 * ref_mean), (
+        f"{view}: SE {se_mean / ref_mean} of the image mean: cannot see a 5 % difference")
+    lo, hi = ((blur_mean, blur_mean) if view == "above" else
+              (np.minimum(ref_mean, blur_mean), np.maximum(ref_mean, blur_mean)))
+    tol = K * se_mean + 0.5 * REF_ACC * ref_mean
+    assert np.all((mean >= lo - tol) & (mean <= hi + tol)), (
+        f"{view}: image mean {mean / ref_mean} of the reference's, expected "
+        f"[{lo / ref_mean}, {hi / ref_mean}] +- {tol / ref_mean}")
 
 
 @pytest.mark.parametrize("view", sorted(VIEWS))
 def test_tile_error_shrinks_with_passes(view, vcm_runs):
     # RMS relative error over the 8 x 8 tiles of 4 x 4 pixels (lit tiles), after P and 4P
     # passes. Pure noise gives a ratio ~0.5 (0.56 with the growing per-pass variance of
-    # the shrinking radius); measured 0.47-0.72 over five seed pairs of this file (the
-    # tiles are few and the caustic tiles' noise heavy-tailed, hence the margin 0.8).
+    # the shrinking radius); measured 0.50-0.75 over five seed pairs of this file (0.47-0.72
+    # before aiming, at P = 24; the tiles are few and the caustic tiles' noise
+    # heavy-tailed, hence the margin 0.8).
     # It fails if a bias that passes do not remove exceeds ~2x the noise after 4P passes.
     imgs, ref, _ = vcm_runs[view]
     rt = R.tiles(ref, FINE)

@@ -5,7 +5,6 @@ water lit by the sun, seen from ABOVE the water (sun -> refraction -> floor -> r
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +17,7 @@ from jaxvcm._materials import fresnel_dielectric
 from jaxvcm._render import _render_pass_jit, render_pass_host
 
 from . import _analytic as A
+from ._caustic_ref import fresnel_unpolarised
 from .test_bidir import flat_water_sun
 
 K = 4.5
@@ -26,9 +26,9 @@ SIGMA_A = np.array([0.3, 0.1, 0.05])
 SUN = np.array([-0.25, -1.0, 0.2]) / np.linalg.norm([-0.25, -1.0, 0.2])
 
 
-def scene(w=16, h=16):
-    # camera 0.6 m above the water (1.6 m above the floor), looking straight down, fov 20
-    return jaxvcm.scene_from_dict(flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=20.0,
+def scene(w=16, h=16, fov=20.0):
+    # camera 0.6 m above the water (1.6 m above the floor), looking straight down
+    return jaxvcm.scene_from_dict(flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=fov,
                                                  w=w, h=h))
 
 
@@ -47,22 +47,54 @@ def expected():
     return T0 / ETA**2 * np.exp(-SIGMA_A * D_) * L_f
 
 
+def expected_over_film(fov, n=512):
+    # expected() without the near-normal approximation, for any fov: the pinhole's rays are
+    # uniform on the film (tan phi = |s|, s in [-tan(fov/2), tan(fov/2)]^2; the renderer
+    # jitters uniformly in each pixel), each refracts with probability T(phi) (unpolarised
+    # Fresnel, tests/_caustic_ref.py's NumPy float64 formula) to sin phi_w = sin phi / eta
+    # and crosses d / cos phi_w of water:
+    #   E[L] = L_f / eta^2 * mean_film T(phi) e^{-sigma_a d / cos phi_w}  (midpoint, n^2).
+    # At fov 20 this is expected() to < 0.2 %; at fov 50, 1.1, 0.4, 0.2 % below it (R G B).
+    th = np.tan(np.radians(fov) / 2)
+    u = ((np.arange(n) + 0.5) / n * 2 - 1) * th
+    cos_phi = 1 / np.sqrt(1 + u[:, None] ** 2 + u[None, :] ** 2)
+    R, cos_w = fresnel_unpolarised(cos_phi, ETA)
+    f = ((1 - R)[..., None] * np.exp(-np.multiply.outer(D_ / cos_w, SIGMA_A))).mean((0, 1))
+    T0 = 1 - ((ETA - 1) / (ETA + 1)) ** 2
+    return expected() * f / (T0 * np.exp(-SIGMA_A * D_))
+
+
 @pytest.mark.parametrize("alg", ["ppm", "vcm"])
 def test_merging_renders_refracted_sun_seen_from_above(alg):
     # vcm: merging is the only technique that can make these paths, so its MIS weight
-    # must come out exactly 1 and the result must equal the analytic value as for ppm
-    sc = scene()
-    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.05)
+    # must come out exactly 1 and the result must equal the analytic value as for ppm.
+    # Teeth: the standard error of the image mean (over passes) must be below 1.25 % of the
+    # value, so that a 5 % error is 4 SE away. The noise is the sun's photons: they cover
+    # the scene's bounding disk (R = 1.63 m, 8.3 m^2) and only those landing within r of a
+    # seen floor point count. At fov 50 (not 20) the camera sees 6x the floor, out to
+    # 0.60 m from the centre in x and z (corners; camera rays within 33.4 deg of the
+    # vertical): measured SE at 4 spp x 48 passes 2.7 % at fov 20, 1.3 % at fov 40, 1.1 %
+    # at fov 50. The floor stays uniformly lit there: light that enters through the
+    # surface reaches the floor 0.24 m further along the sun (-x, +z), so it is uniform for
+    # x < 0.81 and z > -0.85, and the disks (r_1 = 0.05 R = 8.1 cm, shrinking) reach
+    # 0.68 m: no radius bias. 4 spp x 96 passes: SE 0.70-0.82 % over four seeds, compared
+    # at 4 SE (the 5 % bar's K, as tests/test_aim.py's aimed twin of this test). Passes
+    # rather than more spp: at 6 spp (1536 paths a side instead of 1024) the program
+    # compiled ~1.2 s longer and a pass cost 1.5x per path (measured, vcm). One compiled
+    # program per algorithm as before.
+    sc = scene(fov=50.0)
+    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.05, spp=4)
     imgs = []
-    for i in range(48):
+    for i in range(96):
         img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(0, i), cfg, i)
         assert int(diag.nonfinite) == 0
         imgs.append(np.asarray(img, np.float64))
     x = np.array(imgs).mean(axis=(1, 2))
     m, se = x.mean(0), x.std(0, ddof=1) / np.sqrt(len(x))
-    ex = expected()
-    assert np.all(np.abs(m - ex) <= K * se + 1e-3 * ex), (m, se, ex)
-    assert np.all(se < 0.08 * ex)  # the comparison has teeth
+    ex = expected_over_film(50.0)
+    assert np.all(se < 0.0125 * ex), (
+        f"{alg}: SE {se / ex} of the value: cannot see a 5 % difference at 4 SE")
+    assert np.all(np.abs(m - ex) <= 4 * se + 1e-3 * ex), f"{alg}: {m} vs {ex} (SE {se})"
     # ... which neither PT nor BDPT can render at all (their image is black here)
     if alg == "ppm":
         for other in ("pt", "bdpt"):
@@ -135,6 +167,9 @@ def test_sphere_furnace_merging_per_path_length(alg):
     # merging the photon density on the sphere is uniform, so the disk kernel's bias is
     # only the curvature term O((r/R)^2) ~ 1e-4 for r = 0.01 R_bound; the sum over all
     # connection and merging techniques of each k must reproduce the analytic value.
+    # Standard errors of the image means over the 8 passes, asserted below 1.25 % of the
+    # value (a 5 % error is then 4 SE away): measured k = 1 0 (bpm: the emitter seen
+    # directly, exact) and 0.06 % (vcm); total 6e-6 (bpm) and 0.07-0.28 % (vcm).
     from .test_bidir import technique_stats
 
     Le, a, D = np.array([0.5, 1.0, 2.0]), np.array([0.3, 0.6, 0.9]), 4
@@ -151,10 +186,15 @@ def test_sphere_furnace_merging_per_path_length(alg):
                 per = per + v
         if k == 1:  # no merging technique for k = 1 (x_0 on the light, x_1 the camera)
             x = per.mean(axis=(1, 2))
-            assert np.all(np.abs(x.mean(0) - Le) <= K * x.std(0, ddof=1) / np.sqrt(len(x)) + 1e-4 * Le)
+            se1 = x.std(0, ddof=1) / np.sqrt(len(x))
+            assert np.all(se1 < 0.0125 * Le), (
+                f"{alg} k = 1: SE {se1 / Le} of Le: cannot see a 5 % difference at 4 SE")
+            assert np.all(np.abs(x.mean(0) - Le) <= K * se1 + 1e-4 * Le), (x.mean(0), se1, Le)
     total = sum(v for v in tech.values()).mean(axis=(1, 2))
     ex = Le * (1 - a**D) / (1 - a)
     se = total.std(0, ddof=1) / np.sqrt(len(total))
+    assert np.all(se < 0.0125 * ex), (
+        f"{alg}: SE {se / ex} of the total: cannot see a 5 % difference at 4 SE")
     assert np.all(np.abs(total.mean(0) - ex) <= K * se + 3e-4 * ex), (total.mean(0), se, ex)
 
 
@@ -176,55 +216,130 @@ def test_pass_radius_schedules_surface_and_medium(alpha):
         np.testing.assert_allclose(float(r.medium), r1 * i ** ((alpha - 1) / 3), rtol=1e-6)
 
 
-def _medium_furnace(Le):
-    return jaxvcm.scene_from_dict(A.medium_furnace(Le, (0.25, 0.5, 1.0), w=8, h=8))
+def _medium_furnace_doc(Le):
+    return A.medium_furnace(Le, (0.25, 0.5, 1.0), w=8, h=8)
 
 
-@functools.lru_cache(maxsize=None)
-def _medium_furnace_pt(Le, D, P):
-    """The path tracer's reference for test_medium_furnace_with_medium_merging (the same
-    for ppm and vcm: rendered once, its P passes in one batch, one compiled program)."""
-    sc = _medium_furnace(np.array(Le))
-    ref = RenderConfig(algorithm="pt", max_depth=D, rr_depth=100, spp=64)
-    return A.pooled(A.render_stats(sc, ref, passes=P, seed=4, batch=P)[2])
+def _ball_outside(x, r):
+    """Bounds (lo, hi) on the fraction of the ball B(x, r) (r < 0.5, x in the box) outside
+    the box [-0.5, 0.5]^3: a wall at distance d < r cuts off the cap c(d) = (r - d)^2 (2r + d)
+    / (4 r^3) of the ball; near edges and corners the caps overlap, so the fraction outside
+    is at least the largest cap and at most their sum."""
+    d = np.minimum(0.5 - np.abs(x), r)
+    c = (r - d) ** 2 * (2 * r + d) / (4 * r**3)
+    return c.max(-1), c.sum(-1)
+
+
+def _furnace_walks(doc, sigma_s, r, D, n=1 << 16, seed=0):
+    """Analog camera random walks in A.medium_furnace's box (purely scattering: exponential
+    flights with sigma_s, isotropic phase, throughput 1; the walls end a walk), from the
+    pinhole through uniform film points, per channel. Columns, each (mean, standard error):
+      q:          the walk meets no wall within D segments (the image at max_depth D is
+                  Le (1 - q): every walk that meets a wall within D segments brings Le);
+      b_lo, b_hi: bounds on the fraction of B(z_1, r) outside the box at the first vertex
+                  z_1 (0 when the walk meets the wall first);
+      B_lo, B_hi: the same summed over the vertices z_j, j < D, that can merge (a photon
+                  y_i with i >= 1 and i + j <= D).
+    Returns [C, 5, 2]."""
+    cam = doc["camera"]
+    o, tg = np.array(cam["position"], float), np.array(cam["target"], float)
+    f = (tg - o) / np.linalg.norm(tg - o)
+    right = np.cross(f, cam["up"])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    rng = np.random.default_rng(seed)
+    th = np.tan(np.radians(cam["fov"]) / 2)
+    s = rng.uniform(-th, th, (n, 2))
+    d0 = f + s[:, :1] * right + s[:, 1:] * up
+    d0 /= np.linalg.norm(d0, axis=1, keepdims=True)
+    out = []
+    for sig in sigma_s:
+        p, d, live = np.broadcast_to(o, (n, 3)), d0, np.ones(n, bool)
+        first, every = np.zeros((2, n)), np.zeros((2, n))
+        for j in range(1, D + 1):
+            with np.errstate(divide="ignore"):
+                t_wall = np.min(np.abs((np.sign(d) * 0.5 - p) / d), axis=1)
+            t = rng.exponential(1 / sig, n)
+            live = live & (t < t_wall)
+            p = p + np.where(live, t, 0.0)[:, None] * d
+            if j < D:
+                lost = np.where(live, _ball_outside(p, r), 0.0)
+                every += lost
+                if j == 1:
+                    first += lost
+            v = rng.normal(size=(n, 3))
+            d = v / np.linalg.norm(v, axis=1, keepdims=True)
+        cols = (live.astype(float), first[0], first[1], every[0], every[1])
+        out.append([(c.mean(), c.std() / np.sqrt(n)) for c in cols])
+    return np.array(out)
+
+
+# first-pass radius (m), medium radius at pass index 1000, passes (of 64 spp)
+_FURNACE_RUN = {"ppm": (0.15, 0.0843, 80), "vcm": (0.053, 0.0298, 12)}
 
 
 @pytest.mark.parametrize("alg", ["ppm", "vcm"])
 def test_medium_furnace_with_medium_merging(alg):
     # Box of emitting walls (Le, albedo 0) filled with a purely scattering medium
-    # (test_transport): every algorithm must give the path tracer's image at the same
-    # max_depth (the truncation is the same: i + j segments for a merged path). ppm renders
-    # all scattered light by merging medium photons with the sphere kernel
+    # (test_transport): the radiance is Le everywhere, so at max_depth D an unbiased
+    # algorithm renders Le (1 - q), q the probability that a camera random walk meets no
+    # wall within D segments (_furnace_walks; at D = 6: 0, 1e-4, 0.36 % in R G B).
+    # ppm renders all scattered light by merging medium photons with the sphere kernel
     # 1 / (sigma_s 4/3 pi r_m^3 N) (a missing 1/sigma_s would scale it by sigma_s = 0.25..1,
     # a wrong kernel radius by 1.33^3, see below); vcm weights those merges against
     # connections. The passes run at pass index 1000+, where the medium radius
     # r_1 1000^(-1/12) and the surface radius r_1 1000^(-1/8) differ by 1.33x.
-    # Kernel bias: photons exist only inside the box, so a sphere reaching past a wall
-    # loses the cap beyond it. For a point at distance x < r from one wall the lost
-    # fraction is (r - x)^2 (2r + x) / (4 r^3), whose mean over x in [0, r] is 3/16; the
-    # points within r of the six walls of the unit box are ~ 6r of the volume, so the
-    # scattered share S of the image (S < 1) is low by at most ~ 6r * 3/16 = 1.125 r / m
-    # (3.4 % at r = 3 cm; edges and corners lose more but are rarer: bound it by 1.5 r).
+    # Kernel bias, computed: photons exist only inside the box, where the in-scattered
+    # radiance is uniform (Le), so the merged estimate at a camera vertex z is Le times the
+    # fraction of B(z, r_m) inside the box (bounds: _ball_outside; the truncation's
+    # non-uniformity changes this by ~q b, < 1e-4). ppm gathers at the first camera vertex
+    # z_1 only (emission if the ray meets the wall first, weight 1), so it renders
+    # Le (1 - q - b), b the mean fraction of B(z_1, r_m) outside the box over the same
+    # walks: at r_m = 8.4 cm b = 0.47-0.51 %, 0.77-0.83 %, 1.10-1.17 % (the camera
+    # vertices crowd near the camera, away from the walls; vertices spread uniformly would
+    # give 1.125 r_m = 9.5 %). Checked at D = 10 and r_m = 22.5 cm (96 passes; b = 1.4-1.5
+    # %, 2.5-2.6 %, 3.6-3.8 %): ppm / Le = 0.9857, 0.9766, 0.9686, within 1.4 SE of 1 - b;
+    # at 11.2 cm (b = 0.65-0.67 %, 1.10-1.14 %, 1.58-1.62 %): 0.9926, 0.9869, 0.9829,
+    # within 0.8 SE. vcm merges at every camera vertex z_j with MIS weights in [0, 1], so
+    # its image lies between Le (1 - q - B) and Le (1 - q), B the fraction outside summed
+    # over the walk's vertices: B = 0.21 %, 0.39-0.40 %, 0.83-0.85 % at r_m = 3 cm.
+    # Teeth: standard errors of the image mean over passes (the pixels of a pass share its
+    # photons: ppm's pooled per-pixel SE was 2.2-2.7x too small), below 1.25 % of the value.
+    # ppm's noise is the photons near its gather points, which crowd near the camera
+    # (their density falls as e^{-sigma_s t} / t^2): per pass of 64 spp 13 % of the value
+    # in blue at r_m = 3 cm, 7-9 % at 8-11 cm (5 % at 22 cm, where the passes cost 3x: the
+    # merge candidates; wider fovs help little: 7 % at fov 120), so ppm runs 80 passes at
+    # r_m = 8.4 cm (SE ~1 % in blue); vcm, whose connections carry most of the image, 12
+    # passes at 3 cm (SE 0.13-0.40 %). D = 6 rather than 10: the same images to 0.01 % (q),
+    # passes a third cheaper. The value is exact, so no path-tracer reference is rendered
+    # (one compiled program fewer).
     Le = np.array([1.0, 2.0, 0.5])
-    sc = _medium_furnace(Le)
+    doc = _medium_furnace_doc(Le)
+    sc = jaxvcm.scene_from_dict(doc)
     from jaxvcm._merge import pass_radius
     from jaxvcm._scene import bounding_sphere
 
     rb = float(bounding_sphere(sc)[1])
-    D, P = 10, 12
-    cfg = RenderConfig(algorithm=alg, max_depth=D, rr_depth=100, radius=0.053 / rb, spp=64)
+    D = 6
+    r_1, r_want, P = _FURNACE_RUN[alg]
+    cfg = RenderConfig(algorithm=alg, max_depth=D, rr_depth=100, radius=r_1 / rb, spp=64)
     r_m = float(pass_radius(cfg, sc, 1000).medium)
-    assert 0.028 < r_m < 0.032
+    assert abs(r_m - r_want) < 5e-4, r_m
     imgs = []
     for i in range(P):
         img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(3, i), cfg, 1000 + i)
         assert int(diag.nonfinite) == 0
         imgs.append(np.asarray(img, np.float64))
-    m, se = A.pooled(np.array(imgs))
-    m_pt, se_pt = _medium_furnace_pt(tuple(Le), D, P)
-    tol = K * np.hypot(se, se_pt) + 1.5 * r_m * Le
-    assert np.all(np.abs(m - m_pt) <= tol), (m, se, m_pt, se_pt)
-    assert np.all(se < 0.02 * Le)  # teeth: the bugs above move the image by 10-50 %
+    x = np.array(imgs).mean(axis=(1, 2)) / Le  # image means per pass, relative to Le
+    m, se = x.mean(0), x.std(0, ddof=1) / np.sqrt(P)
+    walks = _furnace_walks(doc, (0.25, 0.5, 1.0), r_m, D)
+    q, b_lo, b_hi, _, B_hi = walks[..., 0].T
+    mc = walks[..., 1].max(-1)  # the walks' own standard errors (~1e-4)
+    lo, hi = (1 - q - b_hi, 1 - q - b_lo) if alg == "ppm" else (1 - q - B_hi, 1 - q)
+    assert np.all(se < 0.0125 * lo), (
+        f"{alg}: SE {se} of the image mean / Le: cannot see a 5 % difference at 4 SE")
+    tol = K * np.hypot(se, mc)
+    assert np.all((m >= lo - tol) & (m <= hi + tol)), f"{alg}: {m} not in [{lo}, {hi}] +- {tol}"
 
 
 # ---------------------------------------------------------------- merging bias vs radius
@@ -266,6 +381,13 @@ def test_merging_bias_shrinks_with_radius():
     # (radiance a/pi E_r, a = 1) must match E_r within its error and differ from the
     # unblurred E_0 by the predicted bias, which shrinks ~ r^2. Resolving a relative bias b
     # takes ~16 / b^3 photon-passes, so the 2 cm bias (3.8 %) is only bounded, not resolved.
+    # Its standard-error requirement is relative to the bias it resolves, not the 5 % bar:
+    # se < |E_r - E_0| / 4 at 8 and 4 cm puts the bias >= 4 SE from zero (measured SE 1 %
+    # and 8 % of it: 100 and 12 SE). Against E_r itself the SE is 0.64 %, 1.3 %, 1.2 % of
+    # the value at 8, 4, 2 cm: a 5 % error in the 8 cm estimate fails, at 4 and 2 cm it is
+    # 3.9 and 4.2 SE, inside K = 4.5 (and the 2 cm bias itself is only 3.2 SE). The 5 % bar
+    # on merging's absolute scale is test_merging_renders_refracted_sun_seen_from_above's
+    # (a uniformly lit floor: no radius bias, SE ~0.8 %).
     h = 0.1
     sc = jaxvcm.scene_from_dict(_disk_light_scene(h, w=32))
     from jaxvcm._merge import pass_radius
