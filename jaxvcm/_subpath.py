@@ -201,7 +201,11 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
                                    t_water=t_water)
     if water.enabled:
         ff = media.sample_free_flight(water, hit.t, u[0], u[1])
-        scatter = s.alive & s.in_water & ff.scatter
+        # the basin is closed: a ray in the water meets a surface. One that meets none has
+        # slipped past a wall where it meets the waterline (float32) and would scatter
+        # metres outside the scene (a photon 50 m away broke the hash grid's precision);
+        # it gets no medium vertex and the lane ends (an escaped ray in the water).
+        scatter = s.alive & s.in_water & ff.scatter & jnp.isfinite(hit.t)
         beta = jnp.where(s.in_water, s.beta * ff.weight, s.beta)
         t = jnp.where(s.in_water, ff.t, hit.t)
     else:
