@@ -88,9 +88,11 @@ def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overfl
     while True:
         est, diag = jitted_pass(scene, key, config, pass_index)
         if _imprecise(diag):  # the grid's own flag: a backstop behind check_precise
+            # check_precise bounded the photons by the scene's box: they were outside it
             raise ValueError(f"config.radius: the hash grid could not resolve pass "
                              f"{int(np.max(np.asarray(pass_index))) + 1}'s merging radius at "
-                             f"the photons' coordinates; use a larger radius or a float64 scene")
+                             f"the photons' coordinates (photons outside the scene's box); "
+                             f"use a larger radius or a float64 scene")
         if not bool(np.any(overflow_of(diag))):
             return est, diag, config
         need = None if need_of is None else int(np.max(np.asarray(need_of(diag))))
