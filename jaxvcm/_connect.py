@@ -39,7 +39,7 @@ from ._path import (Pdfs, both_dispersed, family_join_weights, family_weights, l
                     mis_join, no_light_partials, pdfs, pinhole_partials, reverse_pdf)
 from ._queue import masked_map
 from ._scene import DELTA_LIGHTS, LIGHT_BACKGROUND, LIGHT_SKY, Scene
-from ._subpath import PathEnds, rows
+from ._subpath import PathEnds, rows, vertex_table
 from ._vec import Vec3
 
 
@@ -373,9 +373,6 @@ def _tr_one(scene: Scene, wseg, d):
     return jnp.where(wseg, media.transmittance(scene.water, d), 1.0)
 
 
-def _at(ends: PathEnds, i, n) -> PathEnds:
-    """Vertex i of lane n of a subpath (traced indices: a gather per field)."""
-    return jax.tree.map(lambda a: a[i, n], ends)
 
 
 def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds,
@@ -396,9 +393,11 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
     s_of = jnp.asarray(ss, jnp.int32)
     t_of = jnp.asarray(ts, jnp.int32)
 
+    lig_at, cam_at = vertex_table(lig), vertex_table(cam)
+
     def item(j, n):
         s, t = s_of[j], t_of[j]
-        y, yp, z, zp = _at(lig, s - 1, n), _at(lig, s - 2, n), _at(cam, t - 1, n), _at(cam, t - 2, n)
+        y, yp, z, zp = lig_at(s - 1, n), lig_at(s - 2, n), cam_at(t - 1, n), cam_at(t - 2, n)
         # ---- visibility z -> y (both ends offset on their own sides) ----
         vis, w, d, wseg = _visible_one(scene, cfg, z.p, z.n, z.medium, y.p, y.n, y.medium)
         # ---- contribution ----
@@ -456,9 +455,11 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         ls, _, _, oz, tmax = shadow_ray(i, n)
         return ls.valid & ~geometry.crosses_water(water, oz, ls.wi, 0.0, tmax, cfg.march_steps)
 
+    cam_at = vertex_table(cam)
+
     def item(i, n):
         j = j_of[i]
-        z, zp = _at(cam, j, n), _at(cam, j - 1, n)
+        z, zp = cam_at(j, n), cam_at(j - 1, n)
         ls, inf, _, oz, tmax = shadow_ray(i, n)
         is_delta_l = is_delta[ls.light]
         f = subpath.eval_f(scene, z.kind, z.mat, z.wo, ls.wi, z.n)
@@ -506,9 +507,11 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
     i_of = jnp.asarray(idx, jnp.int32)
     sg = jax.lax.stop_gradient
 
+    lig_at = vertex_table(lig)
+
     def item(k, n):
         i = i_of[k]
-        y, yp = _at(lig, i, n), _at(lig, jnp.maximum(i - 1, 0), n)
+        y, yp = lig_at(i, n), lig_at(jnp.maximum(i - 1, 0), n)
         co = Vec3(*(c[n] for c in cam_o))
         first = i == 0
         # ---- visibility camera -> y (the pinhole as a medium-like point: no offset) ----

@@ -218,18 +218,31 @@ def subpaths(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
                                     path.log_n_light_tracing(cfg, N, dt))
         cm0 = None if st.cam_start is None else st.cam_start.mis
         lm0 = None if st.light_start is None else st.light_start.mis
-    if tech.camera_paths and tech.light_paths:
-        cverts, (lverts, rev0) = subpath.trace_both(scene, cfg, st.cam_start, st.cam_u, D,
-                                                    st.light_start, st.light_u, n_steps, ctx)
-    elif tech.camera_paths:
-        cverts, _ = subpath.trace(scene, cfg, True, st.cam_start, st.cam_u, D, mis_ctx=ctx)
-    else:
-        lverts, rev0 = subpath.trace(scene, cfg, False, st.light_start, st.light_u, n_steps,
-                                     mis_ctx=ctx)
+    # the records come back with the start vertices z_0 / y_0 as row 0 (`subpath.trace`'s
+    # v0), so that they are the `PathEnds` as they are
+    c0 = l0 = None
     if tech.camera_paths:
-        cends = subpath.camera_ends(scene, st.origins, cverts, N, cm0)
+        c0 = subpath.camera_start_record(scene, st.origins, N, cm0)
     if tech.light_paths:
-        lends = subpath.light_ends(scene, st.emission, rev0, lverts, N, lm0)
+        l0 = subpath.light_start_record(scene, st.emission, lm0)
+    # (and packed per dtype as the trace keeps them: `VertexTable`, read by the joins)
+    if tech.camera_paths and tech.light_paths:
+        (cfull, ctab), (lfull, ltab) = subpath.trace_both(
+            scene, cfg, st.cam_start, st.cam_u, D, st.light_start, st.light_u, n_steps, ctx,
+            (c0, l0))
+    elif tech.camera_paths:
+        cfull, ctab = subpath.trace(scene, cfg, True, st.cam_start, st.cam_u, D, mis_ctx=ctx,
+                                    v0=c0)
+        ctab = None if ctab is None else subpath.VertexTable(*ctab, 0, False)
+    else:
+        lfull, ltab = subpath.trace(scene, cfg, False, st.light_start, st.light_u, n_steps,
+                                    mis_ctx=ctx, v0=l0)
+        ltab = None if ltab is None else subpath.VertexTable(*ltab, 0, True)
+    tail = lambda v: jax.tree.map(lambda a: a[1:], v)  # noqa: E731 (the records alone)
+    if tech.camera_paths:
+        cends, cverts = subpath.ends(cfull, False, ctab), tail(cfull)
+    if tech.light_paths:
+        lends, lverts = subpath.ends(lfull, True, ltab), tail(lfull)
     return dataclasses.replace(st, cverts=cverts, lverts=lverts, cends=cends, lends=lends,
                                cam_start=None, cam_u=None, light_start=None, light_u=None)
 
@@ -388,36 +401,48 @@ def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
     check_chunks(scene, cfg)
     if cfg.chunks > 1:
         return _integrate_chunks(scene, key, cfg, pass_index)
-    tech, stats = technique_images(scene, key, cfg, pass_index)
+    st = PassState(key=key, pass_index=pass_index)
+    for name, stage in pass_stages(cfg):
+        if name != "film":  # the techniques go straight into one image, not one each
+            st = stage(scene, cfg, st)
+    img, bad, stats = _chunk_film(scene, cfg, st)
     cam = scene.camera
-    img = jnp.zeros((cam.height, cam.width, scene.channels), cam.origin.dtype)
-    bad = jnp.zeros((), jnp.int32)
-    for _, v in tech.items():
-        finite = jnp.isfinite(v)
-        bad = bad + jnp.sum(~finite).astype(jnp.int32)
-        img = img + jnp.where(finite, v, 0.0)
-    return img, bad, stats
+    return img.reshape(cam.height, cam.width, scene.channels), bad, stats
 
 
 def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
     """A chunk's techniques added into one [P, C] image (non-finite values zeroed and
     counted): camera-path values at their pixels (1/spp), light-tracing splats where they
-    land (each carries 1/N of the pass already)."""
+    land (each carries 1/N of the pass already).
+
+    Written for the compiler: the camera values are one elementwise chain (their sum and
+    a per-element count of non-finite values; one reduction at the end), and the splats
+    one concatenated scatter. A reduction per technique made each technique its own
+    kernels (vcm at depth 8: ~200 of the pass's ~830 XLA:CPU kernels were this film)."""
     P, N, _, dt = _dims(scene, cfg)
     C = scene.channels
-    img = jnp.zeros((P, C), dt)
     cam_sum = jnp.zeros((N, C), dt)
-    bad = jnp.zeros((), jnp.int32)
+    nbad = jnp.zeros((N, C), jnp.int32)
+    pix, spl = [], []
     for val in st.values:
-        v = val[1] if isinstance(val, tuple) else val
-        finite = jnp.isfinite(v)
-        bad = bad + jnp.sum(~finite).astype(jnp.int32)
-        v = jnp.where(finite, v, 0.0)
         if isinstance(val, tuple):
-            img = img.at[val[0]].add(v)
-        else:
-            cam_sum = cam_sum + v
-    img = img.at[_path_pixels(scene, cfg, st)].add(cam_sum / cfg.spp)
+            pix.append(val[0].reshape(-1))
+            spl.append(val[1].reshape(-1, C))
+            continue
+        finite = jnp.isfinite(val)
+        nbad = nbad + (~finite).astype(jnp.int32)
+        cam_sum = cam_sum + jnp.where(finite, val, 0.0)
+    bad = jnp.sum(nbad, dtype=jnp.int32)
+    cam_sum = cam_sum / cfg.spp
+    if cfg.chunks == 1:  # path n is pixel n % P: a reshape, no scatter
+        img = cam_sum.reshape(cfg.spp, P, C).sum(axis=0)
+    else:
+        img = jnp.zeros((P, C), dt).at[_path_pixels(scene, cfg, st)].add(cam_sum)
+    if pix:
+        v = jnp.concatenate(spl)
+        finite = jnp.isfinite(v)
+        bad = bad + jnp.sum(~finite, dtype=jnp.int32)
+        img = img.at[jnp.concatenate(pix)].add(jnp.where(finite, v, 0.0))
     zero = jnp.zeros((), jnp.int32)
     cv = zero if st.cverts is None else jnp.sum(st.cverts.alive).astype(jnp.int32)
     lv = zero if st.lverts is None else jnp.sum(st.lverts.alive).astype(jnp.int32)

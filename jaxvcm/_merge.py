@@ -335,18 +335,15 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     lig_pdfs = pdfs(lig)
     cam_pdfs = pdfs(cam)
 
-    def at(ends, row, lane):
-        return jax.tree.map(lambda a: a[row, lane], ends)
+    cam_at, lig_at = subpath.vertex_table(cam), subpath.vertex_table(lig)
 
     def kernel(qi, pj, d2):
         jq = (qi // N + 1).astype(jnp.int32)
         lc = qi % N
         ip = (pj // N + 1).astype(jnp.int32)
         ll = pj % N
-        z = at(cam, jq, lc)
-        zp = at(cam, jq - 1, lc)
-        y = at(lig, ip, ll)
-        yp = at(lig, ip - 1, ll)
+        z, zp = cam_at(jq, lc), cam_at(jq - 1, lc)
+        y, yp = lig_at(ip, ll), lig_at(ip - 1, ll)
         same = (z.medium == y.medium) & (z.medium | (vec.dot(z.n, y.n) > 0))
         ok = (same & (ip + jq <= D) & z.alive & ~z.delta & y.alive & ~y.delta
               & _within(z.medium, d2, radius))

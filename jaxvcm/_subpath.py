@@ -306,7 +306,7 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
 
 
 def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,
-          limit=None, mis_ctx=None) -> tuple[Vertex, Array]:
+          limit=None, mis_ctx=None, v0: Vertex | None = None):
     """Trace L subpaths from batched start states; u: [n_steps, L, N_UNIFORMS], an array or
     a `_uniforms.Uniforms` table (hashed per round for the round's lanes).
     `radiance`: True (camera subpaths), False (light subpaths) or an [L] per-lane flag
@@ -323,9 +323,17 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     uniforms (u[its depth, its lane]) as in a loop over depths: the live records do not
     depend on the round width. A batch of at most one round per step (W >= L) runs the
     plain loop over depths (`_trace_all`). `mis_ctx`: the recursive MIS form's per-pass
-    `_mis_recursive.Context` (when `s0.mis` carries its recursion)."""
+    `_mis_recursive.Context` (when `s0.mis` carries its recursion).
+
+    `v0` ([L] records of the start vertices): the records come back with it as row 0
+    ([n_steps + 1, L]; vertex k in row k + 1) and the reverse pdf p(v_0 | v_1) written
+    into row 0 for the light lanes (not radiance); camera lanes keep v0's. The records
+    are then the subpaths' `PathEnds` as they are (`ends`): no copy of every field to
+    prepend the start vertex (on the pool at 256x256 that copy was ~10 % of PT's pass)."""
     static = isinstance(radiance, bool)
     L = s0.alive.shape[0]
+    if v0 is not None:
+        rev_to0 = (jnp.full((L,), not radiance) if static else ~radiance)
     limit = jnp.full((L,), n_steps, jnp.int32) if limit is None else limit
     W = round_width(L, cfg.trace_split)  # lanes per round
     # Enough rounds for every lane to run every step: a round either advances W lanes (at
@@ -336,13 +344,19 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     # depth 2 and a furnace came out 3.7 % dark.) Rounds with no live lane are skipped.
     rounds = (n_steps * L) // W + n_steps
     if W >= L:
-        return _trace_all(scene, cfg, radiance, s0, u, n_steps, mis_ctx)
+        verts, rev0 = _trace_all(scene, cfg, radiance, s0, u, n_steps, mis_ctx)
+        if v0 is None:
+            return verts, rev0
+        return with_start(v0._replace(pdf_rev=jnp.where(rev_to0, rev0, v0.pdf_rev)),
+                          verts), None
     if isinstance(u, Uniforms) and not u.lazy:  # no lazy draws: gather from the table
         u = u.dense()
     vstep = jax.vmap(lambda sc, c, r, i, st, ui, tw: step(sc, c, r, i, st, ui, tw, mis_ctx),
                      in_axes=(None, None, None if static else 0, 0, 0, 0, 0))
     # records and lane states packed per dtype: one gather / scatter per dtype and round
-    rec_pack = Packed(_dead_records(s0, n_steps, scene.channels), 2)
+    off = 0 if v0 is None else 1  # row of vertex k: k + off
+    n_rows = n_steps + off
+    rec_pack = Packed(_dead_records(s0, n_rows, scene.channels), 2)
     state_pack = Packed(s0, 1)
     rev_col = rec_pack.column(_leaf(rec_pack, "pdf_rev"))
     alive_col = state_pack.column(_leaf(state_pack, "alive"))[1]
@@ -366,10 +380,11 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         k = k.at[lane].add(1, mode="drop")
         # v_k's record at (k, lane); the pdf_rev it computed belongs to v_{k-1} (y_0 / z_0
         # for k = 0)
-        row = jnp.where(lane < L, kg, n_steps)
+        row = jnp.where(lane < L, kg + off, n_rows)
         rec = v._replace(pdf_rev=jnp.ones_like(v.pdf_rev))  # set when v_{k+1} is traced
         V = {d: V[d].at[row, lane].set(x, mode="drop") for d, x in rec_pack.pack(rec).items()}
-        prev = jnp.where((kg > 0) & (lane < L), kg - 1, n_steps)
+        to_prev = kg > 0 if v0 is None else (kg > 0) | rev_to0[g]
+        prev = jnp.where(to_prev & (lane < L), kg - 1 + off, n_rows)
         d, c = rev_col
         V[d] = V[d].at[prev, lane, c].set(v.pdf_rev, mode="drop")
         rev0 = rev0.at[jnp.where(kg == 0, lane, L)].set(v.pdf_rev, mode="drop")
@@ -380,8 +395,14 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         busy = jnp.any(S["bool"][:, alive_col] & (k < limit))
         return jax.lax.cond(busy, advance, lambda c: c, carry), None
 
-    carry = (state_pack.arrays, k0, rec_pack.arrays, rev0)
+    V0 = rec_pack.arrays
+    if v0 is not None:  # row 0: the start vertices
+        P0 = rec_pack.pack(v0)
+        V0 = {d: a.at[0].set(P0[d]) for d, a in V0.items()}
+    carry = (state_pack.arrays, k0, V0, rev0)
     (_, _, V, rev0), _ = jax.lax.scan(body, carry, None, length=rounds)
+    if v0 is not None:  # the records, and the same packed (`VertexTable`)
+        return rec_pack.unpack(V), (rec_pack, V)
     return rec_pack.unpack(V), rev0
 
 
@@ -437,7 +458,7 @@ def _dead_records(s0: WalkState, n_steps: int, C: int) -> Vertex:
 
 
 def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: int,
-               light0: WalkState, u_light, n_light: int, mis_ctx=None):
+               light0: WalkState, u_light, n_light: int, mis_ctx=None, v0=None):
     """Camera and light subpaths in one trace (one copy of `step` in the compiled program):
     the 2N lanes carry their transport mode as a per-lane flag, and each lane computes
     exactly what its own `trace` would (its uniforms, its mode, its number of steps). Returns (camera records
@@ -452,6 +473,16 @@ def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: i
         u = jnp.concatenate([u_cam[:n_cam], jnp.concatenate([u_light[:n_light], pad])], axis=1)
     s0 = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), cam0, light0)
     mode = jnp.arange(2 * N) < N
+    if v0 is not None:  # (z_0, y_0) records: rows 0 of both (`trace`'s v0)
+        v0 = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), *v0)
+        verts, packed = trace(scene, cfg, mode, s0, u, n_cam,
+                              jnp.where(mode, n_cam, n_light), mis_ctx, v0)
+        cverts = jax.tree.map(lambda a: a[:, :N], verts)
+        lverts = jax.tree.map(lambda a: a[:n_light + 1, N:], verts)
+        lverts = lverts._replace(pdf_rev=lverts.pdf_rev.at[-1].set(1.0))
+        tables = (None, None) if packed is None else (
+            VertexTable(packed[0], packed[1], 0, False), VertexTable(packed[0], packed[1], N, True))
+        return (cverts, tables[0]), (lverts, tables[1])
     verts, rev0 = trace(scene, cfg, mode, s0, u, n_cam, jnp.where(mode, n_cam, n_light),
                         mis_ctx)
     cverts = jax.tree.map(lambda a: a[:, :N], verts)
@@ -495,51 +526,101 @@ class PathEnds(NamedTuple):
     alive: Array
     disp: Array  # beta carries the hero-only x C of a dispersive refraction (`_subpath`)
     mis: Any = None  # `_mis_recursive.Record` [D+1, N, ...] (mis_form "recursive")
+    table: Any = None  # `VertexTable`: the same records as the trace packed them
 
 
-def _stack0(v0, rest):
-    return jnp.concatenate([v0[None], rest], axis=0)
+@jax.tree_util.register_pytree_node_class
+class VertexTable:
+    """A subpath's records as the trace packed them (`_queue.Packed`: one [rows, lanes, F]
+    array per dtype, the start vertex in row 0), lanes `lane0`.. of them: one vertex is one
+    gather per dtype. (`trace_both` packs camera and light lanes side by side.)"""
+
+    def __init__(self, layout: Packed, arrays: dict, lane0: int, light: bool):
+        self.layout, self.arrays, self.lane0, self.light = layout, arrays, lane0, light
+
+    def tree_flatten(self):
+        return (self.arrays,), (self.layout, self.lane0, self.light)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(aux[0], children[0], aux[1], aux[2])
+
+    def at(self, i, n) -> PathEnds:
+        rec = self.layout.unpack({d: a[i, n + self.lane0] for d, a in self.arrays.items()})
+        return ends(rec, self.light)
 
 
-def _ends(p0: Vec3, n0: Vec3, wo0: Vec3, beta0, A0, B0, verts: Vertex, rest_A, rest_B,
-          mis0=None) -> PathEnds:
-    N = A0.shape[0]
-    f = jnp.zeros((N,), bool)
-    st = _stack0
-    mis = None
-    if verts.mis is not None:  # the start vertex's record from its carry (`start_carry`)
-        mis = mis_recursive.Record(st(mis0.rec, verts.mis.rec), st(mis0.zero, verts.mis.zero))
-    return PathEnds(
-        Vec3(*(st(a, b) for a, b in zip(p0, verts.p))),
-        Vec3(*(st(a, b) for a, b in zip(n0, verts.n))),
-        Vec3(*(st(a, b) for a, b in zip(wo0, verts.wo))),
-        st(beta0, verts.beta), st(A0, rest_A), st(B0, rest_B),
-        st(jnp.ones((N,), A0.dtype), verts.q), st(f, verts.delta),
-        st(f, verts.kind == KIND_MEDIUM), st(jnp.full((N,), -1, jnp.int32), verts.kind),
-        st(jnp.zeros((N,), jnp.int32), verts.mat), st(f, verts.seg_water),
-        st(jnp.ones((N,), bool), verts.alive), st(f, verts.dispersed), mis)
+def vertex_table(ends: PathEnds):
+    """`at(i, n) -> PathEnds` of vertex i of lane n (traced indices, any batch shape). The
+    records packed per dtype (`_queue.Packed`: one [D+1, N, F] array each; the trace's
+    own `VertexTable` when the ends carry it, else packed here), so a vertex is one
+    gather per dtype, not one per field: the ~20 per-field gathers of a join kernel were
+    each a kernel of XLA:CPU's own (compile time) and a cache miss each (run time)."""
+    if ends.table is not None:  # the trace's own packing: no copy
+        return ends.table.at
+    pk = Packed(ends, 2)
+
+    def at(i, n) -> PathEnds:
+        return pk.unpack({d: a[i, n] for d, a in pk.arrays.items()})
+
+    return at
+
+
+def with_start(v0: Vertex, verts: Vertex) -> Vertex:
+    """Records [n, N] with the start vertices' records v0 [N] prepended as row 0 (what
+    `trace` returns when given v0; for records traced without it)."""
+    return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), v0, verts)
 
 
 def camera_ends(scene: Scene, cam_o: Vec3, verts: Vertex, n_paths: int, mis0=None) -> PathEnds:
-    """z_0 (the pinhole: B = 1, never a delta vertex) followed by the camera records;
-    `mis0`: z_0's `_mis_recursive.Carry` (mis_form "recursive")."""
-    dt = cam_o.x.dtype
-    N = n_paths
-    cf = vec.from_array(jnp.broadcast_to(scene.camera.forward, (N, 3)))
-    one = jnp.ones((N,), dt)
-    return _ends(cam_o, cf, cf, jnp.ones((N, scene.channels), dt), one, one, verts,
-                 verts.pdf_rev, verts.pdf_fwd, mis0)
+    """z_0 (the pinhole) followed by the camera records [D, N] (traced without v0)."""
+    return ends(with_start(camera_start_record(scene, cam_o, n_paths, mis0), verts), False)
 
 
 def light_ends(scene: Scene, e: lights.Emission, rev0, verts: Vertex, n_paths: int,
                mis0=None) -> PathEnds:
-    """y_0 (on the light, or at infinity) followed by the light records; `mis0`: y_0's
-    `_mis_recursive.Carry` (mis_form "recursive")."""
-    return _ends(e.p, e.n, -e.d, e.beta0, e.pdf_pos, rev0, verts, verts.pdf_fwd, verts.pdf_rev,
-                 mis0)
+    """y_0 (on the light, or at infinity; B = rev0) followed by the light records."""
+    v0 = light_start_record(scene, e, mis0)
+    return ends(with_start(v0._replace(pdf_rev=rev0), verts), True)
+
+
+def camera_start_record(scene: Scene, cam_o: Vec3, n_paths: int, mis0=None) -> Vertex:
+    """z_0's record (row 0 of `trace`'s v0): the pinhole, B = A = 1, never a delta vertex."""
+    return _start_record(scene, cam_o, vec.from_array(jnp.broadcast_to(
+        scene.camera.forward, (n_paths, 3))), None, None, 1.0, 1.0, mis0)
+
+
+def light_start_record(scene: Scene, e: lights.Emission, mis0=None) -> Vertex:
+    """y_0's record: on the light (or at infinity), A = p_pos; its B = p(y_0 | y_1) is
+    written by the trace."""
+    return _start_record(scene, e.p, e.n, -e.d, e.beta0, e.pdf_pos, 1.0, mis0)
+
+
+def _start_record(scene, p0: Vec3, n0: Vec3, wo0, beta0, pdf_pos, pdf_b, mis0) -> Vertex:
+    # the values `_ends` gave row 0 (kind KIND_NONE: no medium, no material)
+    N = p0.x.shape[0]
+    dt = p0.x.dtype
+    f = jnp.zeros((N,), bool)
+    wo0 = n0 if wo0 is None else wo0
+    beta0 = jnp.ones((N, scene.channels), dt) if beta0 is None else beta0
+    mis = None if mis0 is None else mis_recursive.Record(mis0.rec, mis0.zero)
+    return Vertex(p0, n0, wo0, beta0, jnp.broadcast_to(jnp.asarray(pdf_pos, dt), (N,)),
+                  jnp.broadcast_to(jnp.asarray(pdf_b, dt), (N,)),
+                  jnp.full((N,), KIND_NONE, jnp.int32), jnp.zeros((N,), jnp.int32),
+                  jnp.full((N,), -1, jnp.int32), jnp.zeros((N, scene.channels), dt),
+                  jnp.ones((N,), dt), f, f, f, jnp.ones((N,), bool), f, mis)
+
+
+def ends(verts: Vertex, light: bool, table: VertexTable | None = None) -> PathEnds:
+    """A subpath's `PathEnds` from its records with the start vertex as row 0 (`trace`'s
+    v0): the same fields, no copies (camera: A = pdf_rev, B = pdf_fwd; light: swapped)."""
+    A, B = (verts.pdf_fwd, verts.pdf_rev) if light else (verts.pdf_rev, verts.pdf_fwd)
+    return PathEnds(verts.p, verts.n, verts.wo, verts.beta, A, B, verts.q, verts.delta,
+                    verts.kind == KIND_MEDIUM, verts.kind, verts.mat, verts.seg_water,
+                    verts.alive, verts.dispersed, verts.mis, table)
 
 
 def rows(ends: PathEnds, idx) -> PathEnds:
     """Rows idx ([J], static) of every field: [J, N, ...]."""
     idx = np.asarray(idx)
-    return jax.tree.map(lambda a: a[idx], ends)
+    return jax.tree.map(lambda a: a[idx], ends._replace(table=None))

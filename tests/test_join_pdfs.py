@@ -532,7 +532,7 @@ def emission(sc, X, pdf_pos):
 
 
 def vertex(ends, i):
-    return C._at(ends, i, 0)
+    return SP.vertex_table(ends)(i, 0)
 
 
 # ---------------------------------------------------------------- the renderer's functions

@@ -272,13 +272,13 @@ def test_carried_recursive_checks_the_stored_pdfs(monkeypatch):
     cfg = _carried_config("pt", spp=4)
     key = jax.random.key(3)
     good, _ = _technique_images(sc, key, cfg)
-    camera_ends = _subpath.camera_ends
+    ends = _subpath.ends
 
-    def planted(*args, **kw):
-        e = camera_ends(*args, **kw)
-        return e._replace(B=e.B.at[2].multiply(1.5))
+    def planted(verts, light, table=None):
+        e = ends(verts, light, table)
+        return e if light else e._replace(B=e.B.at[2].multiply(1.5), table=None)
 
-    monkeypatch.setattr(_subpath, "camera_ends", planted)
+    monkeypatch.setattr(_subpath, "ends", planted)
     # trace_split changes the work, not the result (a fresh trace that sees the mistake)
     bad_e, _ = _technique_images(sc, key, dataclasses.replace(cfg, trace_split=3))
     bad_r, _ = _technique_images(sc, key, dataclasses.replace(cfg, trace_split=3,
