@@ -115,28 +115,25 @@ def _tables(cfg, M, u_q, d_q, u_1, d_1, bad):
     Sq = jnp.concatenate([neg[None], Sq])
     S1 = jnp.concatenate([neg[None], S1])  # no roulette at all: the variants with z = M
     zero = jnp.concatenate([no[None], zero])
-    # variant with z vertices without roulette before the join: S[m] is the roulette
-    # recursion's S[m - z] carried on by z steps without it, S[m] <- u_1[p] (+) (d_1[p] +
-    # S[m]), p = m - z + r, r = 0..z-1 (rows m < z - r are not yet started). Per variant,
-    # with the row shifts as pads of the inputs: elementwise over the lanes (vectorised).
-    # The same arithmetic as gathering u_1[p] for all variants at once, which made XLA's
-    # CPU backend emit one scalar gather loop over [V, M+1, lanes] (2.5x slower).
+    # variant with z vertices without roulette before the join: S_z[m] is the roulette
+    # recursion's S[m - z] carried on by z steps without it. The last of those steps is
+    # vertex m - 1's, and what it starts from is variant z - 1 at row m - 1, so
+    #     S_z[m] = u_1[m-1] (+) (d_1[m-1] + S_{z-1}[m-1]),  S_z[0] = S[0],  S_0 = Sq:
+    # one elementwise step over [M+1, lanes] per variant, the row shift a pad (the same
+    # operations in the same order as z steps per variant, which cost sum z instead of
+    # max z; a gather of u_1[p] for all variants at once made XLA's CPU backend emit one
+    # scalar gather loop over [V, M+1, lanes], 2.5x slower).
+    zs = [int(x) for x in z[:, 0]]
     m = np.arange(M + 1)
-    table = []
-    for zv in (int(x) for x in z[:, 0]):
-        if zv >= M:  # no roulette at all
-            table.append(S1)
-            continue
-        row = Sq if zv == 0 else jnp.concatenate(
-            [jnp.broadcast_to(Sq[:1], (zv,) + Sq.shape[1:]), Sq[:M + 1 - zv]])
-        for r in range(zv):
-            lo_m = zv - r  # rows m >= lo_m take step r, with p = m - lo_m
-            pad = jnp.zeros((lo_m,) + u_1.shape[1:], u_1.dtype)
-            us = jnp.concatenate([pad, u_1[:M + 1 - lo_m]])
-            ds = jnp.concatenate([pad, d_1[:M + 1 - lo_m]])
-            on = (m >= lo_m).reshape((M + 1,) + ex)
-            row = jnp.where(on, jnp.logaddexp(us, ds + row), row)
-        table.append(row)
+    pad = jnp.zeros((1,) + u_1.shape[1:], u_1.dtype)
+    us = jnp.concatenate([pad, u_1[:M]])  # row m: u_1[m - 1]
+    ds = jnp.concatenate([pad, d_1[:M]])
+    on = (m >= 1).reshape((M + 1,) + ex)
+    chain = [Sq]
+    for _ in range(min(max(zs), M)):
+        prev = jnp.concatenate([Sq[:1], chain[-1][:M]])  # row m: S_{z-1}[m - 1]
+        chain.append(jnp.where(on, jnp.logaddexp(us, ds + prev), Sq[:1]))
+    table = [S1 if zv >= M else chain[zv] for zv in zs]  # no roulette at all: S1
     return jnp.stack(table), zero
 
 

@@ -356,7 +356,10 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     # records and lane states packed per dtype: one gather / scatter per dtype and round
     off = 0 if v0 is None else 1  # row of vertex k: k + off
     n_rows = n_steps + off
-    rec_pack = Packed(_dead_records(s0, n_rows, scene.channels), 2)
+    # the record buffer: every row the lane's dead record, packed at [L, F] and then
+    # broadcast over the rows (one write of the buffer; packing the broadcast rows
+    # materialised each field's broadcast first)
+    rec_pack = Packed(_dead_records(s0, None, scene.channels), 1)
     state_pack = Packed(s0, 1)
     rev_col = rec_pack.column(_leaf(rec_pack, "pdf_rev"))
     alive_col = state_pack.column(_leaf(state_pack, "alive"))[1]
@@ -395,7 +398,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         busy = jnp.any(S["bool"][:, alive_col] & (k < limit))
         return jax.lax.cond(busy, advance, lambda c: c, carry), None
 
-    V0 = rec_pack.arrays
+    V0 = {d: jnp.broadcast_to(a[None], (n_rows,) + a.shape) for d, a in rec_pack.arrays.items()}
     if v0 is not None:  # row 0: the start vertices
         P0 = rec_pack.pack(v0)
         V0 = {d: a.at[0].set(P0[d]) for d, a in V0.items()}
@@ -434,27 +437,28 @@ def _leaf(packed: Packed, field: str) -> int:
     return getattr(t, field)
 
 
-def _dead_records(s0: WalkState, n_steps: int, C: int) -> Vertex:
+def _dead_records(s0: WalkState, n_steps: int | None, C: int) -> Vertex:
     """Records of vertices that are never traced: not alive, zero throughput, unit pdfs;
     positions, normals and directions from the lane's start (finite, so that masked-out
-    geometry downstream stays finite)."""
+    geometry downstream stays finite). [n_steps, L], or [L] (one row) for n_steps None."""
     L = s0.alive.shape[0]
     dt = s0.pdf_w.dtype
+    lead = (L,) if n_steps is None else (n_steps, L)
 
     def full(x, dtype=None):
         x = jnp.asarray(x, dtype)
-        return jnp.broadcast_to(x, (n_steps, L) + x.shape[1:] if x.ndim else (n_steps, L))
+        return jnp.broadcast_to(x, lead + x.shape[1:] if x.ndim else lead)
 
     f = full(False)
     mis = None
     if s0.mis is not None:  # never read: a dead vertex takes part in no technique
         K = s0.mis.rec.shape[-1]
-        mis = mis_recursive.Record(jnp.zeros((n_steps, L, K), dt), f)
+        mis = mis_recursive.Record(jnp.zeros(lead + (K,), dt), f)
     return Vertex(
         jax.tree.map(full, s0.o), jax.tree.map(full, s0.n_prev), jax.tree.map(full, -s0.d),
-        jnp.zeros((n_steps, L, C), dt), full(jnp.ones((), dt)), full(jnp.ones((), dt)),
+        jnp.zeros(lead + (C,), dt), full(jnp.ones((), dt)), full(jnp.ones((), dt)),
         full(KIND_NONE, jnp.int32), full(0, jnp.int32), full(-1, jnp.int32),
-        jnp.zeros((n_steps, L, C), dt), full(jnp.ones((), dt)), f, f, f, f, f, mis)
+        jnp.zeros(lead + (C,), dt), full(jnp.ones((), dt)), f, f, f, f, f, mis)
 
 
 def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: int,
