@@ -421,18 +421,19 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
     kernels (vcm at depth 8: ~200 of the pass's ~830 XLA:CPU kernels were this film)."""
     P, N, _, dt = _dims(scene, cfg)
     C = scene.channels
-    cam_sum = jnp.zeros((N, C), dt)
-    nbad = jnp.zeros((N, C), jnp.int32)
-    pix, spl = [], []
-    for val in st.values:
-        if isinstance(val, tuple):
-            pix.append(val[0].reshape(-1))
-            spl.append(val[1].reshape(-1, C))
-            continue
-        finite = jnp.isfinite(val)
-        nbad = nbad + (~finite).astype(jnp.int32)
-        cam_sum = cam_sum + jnp.where(finite, val, 0.0)
-    bad = jnp.sum(nbad, dtype=jnp.int32)
+    cams = [v for v in st.values if not isinstance(v, tuple)]
+    pix = [v[0].reshape(-1) for v in st.values if isinstance(v, tuple)]
+    spl = [v[1].reshape(-1, C) for v in st.values if isinstance(v, tuple)]
+    if cams:  # stacked first: each value computed once (as two elementwise chains XLA
+        # fused each technique's producer, its gathers and MIS weight, into both)
+        vals = jnp.stack(cams)
+        bad = jnp.sum(~jnp.isfinite(vals), dtype=jnp.int32)
+        cam_sum = jnp.zeros((N, C), dt)
+        for i in range(len(cams)):  # in technique order (a reduction over the stack's
+            v = vals[i]             # first axis ran as a slow YNNPACK kernel)
+            cam_sum = cam_sum + jnp.where(jnp.isfinite(v), v, 0.0)
+    else:
+        cam_sum, bad = jnp.zeros((N, C), dt), jnp.zeros((), jnp.int32)
     cam_sum = cam_sum / cfg.spp
     if cfg.chunks == 1:  # path n is pixel n % P: a reshape, no scatter
         img = cam_sum.reshape(cfg.spp, P, C).sum(axis=0)
