@@ -439,9 +439,10 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
     j_of = jnp.asarray(js, jnp.int32)
     sg = jax.lax.stop_gradient
 
-    def shadow_ray(i, n):  # the light sample of item (i, n) and its shadow ray
-        j = j_of[i]
-        p, nz, med = (jax.tree.map(lambda a: a[j, n], x) for x in (cam.p, cam.n, cam.medium))
+    cam_at = vertex_table(cam)
+
+    def shadow_ray(i, n, z):  # the light sample of item (i, n) at z and its shadow ray
+        p, nz, med = z.p, z.n, z.medium
         u = u_nee[i, n]
         ls = lights.sample_light(scene, p, u[0], u[1], u[2])
         inf = ~jnp.isfinite(ls.dist)
@@ -451,16 +452,17 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         tmax = jnp.where(inf, jnp.inf, vec.length(y - oz) * (1.0 - 1e-4))
         return ls, inf, dist, oz, tmax
 
+    # (every vertex read from the trace's packed table: the per-field columns [D+1, N]
+    # given to these loops were each a strided copy of the whole table, ~2.3 ms apiece
+    # per PT pass at 256x256)
     def worth(i, n):  # False: the item contributes 0 whatever the rest computes
-        ls, _, _, oz, tmax = shadow_ray(i, n)
+        ls, _, _, oz, tmax = shadow_ray(i, n, cam_at(j_of[i], n))
         return ls.valid & ~geometry.crosses_water(water, oz, ls.wi, 0.0, tmax, cfg.march_steps)
-
-    cam_at = vertex_table(cam)
 
     def item(i, n):
         j = j_of[i]
         z, zp = cam_at(j, n), cam_at(j - 1, n)
-        ls, inf, _, oz, tmax = shadow_ray(i, n)
+        ls, inf, _, oz, tmax = shadow_ray(i, n, z)
         is_delta_l = is_delta[ls.light]
         f = subpath.eval_f(scene, z.kind, z.mat, z.wo, ls.wi, z.n)
         vis = geometry.unoccluded(scene, oz, ls.wi, tmax, cfg.march_steps)
@@ -536,7 +538,8 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
 
     def worth(k, n):  # False: the item contributes 0 whatever the rest computes
         i = i_of[k]
-        p, ny, med = (jax.tree.map(lambda a: a[i, n], x) for x in (lig.p, lig.n, lig.medium))
+        y = lig_at(i, n)  # (from the packed table, as in next-event estimation)
+        p, ny, med = y.p, y.n, y.medium
         co = Vec3(*(c[n] for c in cam_o))
         w, _, oa, wd, tmax = _segment(co, ny, jnp.ones((), bool), p, ny, med)
         inside = camera_importance(scene, w)[2]

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from . import _vec as vec
+from ._fuse import computed_once
 from ._queue import masked_map
 from ._scene import SHAPE_NONE, SHAPE_RECT, SHAPE_SPHERE, SHAPE_WATER, Rects, Scene, Spheres, Water
 from ._vec import Vec3
@@ -110,6 +111,7 @@ def water_height(w: Water, x, z, grad: bool = True):
 
 def water_normal(w: Water, x, z) -> Vec3:
     _, hx, hz = water_height(w, jnp.asarray(x), jnp.asarray(z))
+    hx, hz = computed_once(hx, hz)  # the waves' cosines once, not once per reader
     return vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
 
 

@@ -9,10 +9,17 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ._fuse import computed_once
 from ._vec import Vec3
 
 INV_PI = 1.0 / jnp.pi
 INV_4PI = 0.25 / jnp.pi
+
+
+def sincos(phi):
+    """(cos phi, sin phi), each computed once (`_fuse.computed_once`: otherwise XLA:CPU
+    recomputes both in every fusion that reads the sampled direction)."""
+    return computed_once(jnp.cos(phi), jnp.sin(phi))
 
 
 def concentric_disk(u1, u2):
@@ -26,7 +33,8 @@ def concentric_disk(u1, u2):
     phi = jnp.where(use_a, (jnp.pi / 4) * (b / safe_a), (jnp.pi / 2) - (jnp.pi / 4) * (a / safe_b))
     zero = (a == 0) & (b == 0)
     r = jnp.where(zero, 0.0, r)
-    return r * jnp.cos(phi), r * jnp.sin(phi)
+    c, s = sincos(phi)
+    return r * c, r * s
 
 
 def cosine_hemisphere(u1, u2) -> Vec3:
@@ -42,8 +50,8 @@ def cosine_hemisphere_pdf(cos_theta):
 def uniform_sphere(u1, u2) -> Vec3:
     z = 1.0 - 2.0 * u1
     r = jnp.sqrt(jnp.maximum(0.0, 1.0 - z * z))
-    phi = 2.0 * jnp.pi * u2
-    return Vec3(r * jnp.cos(phi), r * jnp.sin(phi), z)
+    c, s = sincos(2.0 * jnp.pi * u2)
+    return Vec3(r * c, r * s, z)
 
 
 def uniform_sphere_pdf():
@@ -52,8 +60,8 @@ def uniform_sphere_pdf():
 
 def _around_axis(cos_t, u2) -> Vec3:
     sin_t = jnp.sqrt(jnp.maximum(0.0, 1.0 - cos_t * cos_t))
-    phi = 2.0 * jnp.pi * u2
-    return Vec3(sin_t * jnp.cos(phi), sin_t * jnp.sin(phi), cos_t)
+    c, s = sincos(2.0 * jnp.pi * u2)
+    return Vec3(sin_t * c, sin_t * s, cos_t)
 
 
 # ---- Henyey-Greenstein. Convention: mu = cos of the angle between the incoming
