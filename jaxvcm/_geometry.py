@@ -122,6 +122,18 @@ def water_slab(w: Water) -> tuple[Array, Array]:
     return w.level - a, w.level + a
 
 
+def _f_rounding(w: Water, o: Vec3, d: Vec3, t0, x0, z0):
+    """A bound on the rounding of f(t0) = o_y + t0 d_y - h(x0, z0): below it, o is on the
+    surface. The waves' terms summed one by one, elementwise (as `water_height`: a
+    reduction over the short waves axis ran as a slow YNNPACK kernel of its own)."""
+    eps = jnp.finfo(o.x.dtype).eps
+    s = jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level)
+    for i in range(w.n_waves):
+        s = s + jnp.abs(w.amp[i]) * (1 + jnp.abs(w.kx[i] * x0) + jnp.abs(w.kz[i] * z0)
+                                     + jnp.abs(w.phase0[i]))
+    return 8 * eps * s
+
+
 def _slab_interval(lo: Vec3, hi: Vec3, o: Vec3, d: Vec3, tmin, tmax):
     ts = []
     for oc, dc, l, h in ((o.x, d.x, lo.x, hi.x), (o.y, d.y, lo.y, hi.y), (o.z, d.z, lo.z, hi.z)):
@@ -166,12 +178,10 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
     ts = t0 + (t1c - t0) * (jnp.arange(steps + 1, dtype=o.x.dtype) / steps)
     fs = f(ts)
     # o on the surface (f(t0) within its rounding): use the sign the ray moves towards
-    eps = jnp.finfo(o.x.dtype).eps
     x0, z0 = o.x + t0 * d.x, o.z + t0 * d.z
     _, hx0, hz0 = water_height(w, x0, z0)
     df0 = d.y - (hx0 * d.x + hz0 * d.z)
-    ferr = 8 * eps * (jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level) + jnp.sum(
-        jnp.abs(w.amp) * (1 + jnp.abs(w.kx * x0) + jnp.abs(w.kz * z0) + jnp.abs(w.phase0))))
+    ferr = _f_rounding(w, o, d, t0, x0, z0)
     sgn0 = jnp.where(jnp.abs(fs[0]) <= ferr, df0 >= 0, fs[0] >= 0)
     change = (fs[1:] >= 0) != sgn0
     found = jnp.any(change) & ~empty
@@ -248,13 +258,11 @@ def crosses_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16) -> Ar
     tE = t0 + (t1c - t0) * (jnp.asarray(steps, o.x.dtype) / steps)  # the march's last point
     hE, _, _ = water_height(w, o.x + tE * d.x, o.z + tE * d.z, grad=False)
     fE = o.y + tE * d.y - hE
-    eps = jnp.finfo(o.x.dtype).eps
     x0, z0 = o.x + t0 * d.x, o.z + t0 * d.z
     h0, hx0, hz0 = water_height(w, x0, z0)
     f0 = o.y + t0 * d.y - h0
     df0 = d.y - (hx0 * d.x + hz0 * d.z)
-    ferr = 8 * eps * (jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level) + jnp.sum(
-        jnp.abs(w.amp) * (1 + jnp.abs(w.kx * x0) + jnp.abs(w.kz * z0) + jnp.abs(w.phase0))))
+    ferr = _f_rounding(w, o, d, t0, x0, z0)
     sgn0 = jnp.where(jnp.abs(f0) <= ferr, df0 >= 0, f0 >= 0)
     return ~empty & ((fE >= 0) != sgn0)
 

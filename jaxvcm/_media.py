@@ -39,13 +39,23 @@ class FreeFlight(NamedTuple):
 def scatter_pdf(sigma_s, t):
     """Distance pdf of a scattering event at t (any shape; channels are the last axis of sigma_s)."""
     t = jnp.minimum(t, BIG)[..., None]
-    return jnp.mean(sigma_s * jnp.exp(-sigma_s * t), axis=-1)
+    return _channel_mean(sigma_s * jnp.exp(-sigma_s * t))
 
 
 def pass_prob(sigma_s, t):
     """Probability of flying a distance t without a scattering event (any shape of t)."""
     t = jnp.minimum(t, BIG)[..., None]
-    return jnp.mean(jnp.exp(-sigma_s * t), axis=-1)
+    return _channel_mean(jnp.exp(-sigma_s * t))
+
+
+def _channel_mean(x):
+    """Mean over the (few) channels of the last axis, summed one by one: elementwise for
+    the compiler (`jnp.mean` over a short trailing axis ran as a slow YNNPACK kernel)."""
+    C = x.shape[-1]
+    s = x[..., 0]
+    for c in range(1, C):
+        s = s + x[..., c]
+    return s / C
 
 
 def transmittance(w: Water, t):
