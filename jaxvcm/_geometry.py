@@ -122,6 +122,9 @@ def water_slab(w: Water) -> tuple[Array, Array]:
     return w.level - a, w.level + a
 
 
+STEEP_EXTRA_REFINE = 2  # Illinois steps added when the bracket is the whole box (`steep`)
+
+
 def _f_rounding(w: Water, o: Vec3, d: Vec3, t0, x0, z0):
     """A bound on the rounding of f(t0) = o_y + t0 d_y - h(x0, z0): below it, o is on the
     surface. The waves' terms summed one by one, elementwise (as `water_height`: a
@@ -145,8 +148,19 @@ def _slab_interval(lo: Vec3, hi: Vec3, o: Vec3, d: Vec3, tmin, tmax):
     return t0, t1
 
 
+def steep(w: Water, d: Vec3) -> Array:
+    """The direction is steeper than any slope of the surface: |d_y| > L |d_xz| with L =
+    sum |A_i| |k_i| >= |grad h|, so f(t) = o_y + t d_y - h(x(t), z(t)) is strictly
+    monotone along the ray (f' = d_y - grad h . d_xz) and crosses zero at most once: the
+    surface's box brackets the crossing without the march (1 % margin for rounding)."""
+    L = jnp.zeros((), d.x.dtype)
+    for i in range(w.n_waves):
+        L = L + jnp.abs(w.amp[i]) * jnp.sqrt(w.kx[i] * w.kx[i] + w.kz[i] * w.kz[i])
+    return jnp.abs(d.y) > 1.01 * L * jnp.sqrt(d.x * d.x + d.z * d.z)
+
+
 def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, refine: int = 6,
-                    any_hit: bool = False) -> Array:
+                    any_hit: bool = False, steep: bool = False) -> Array:
     """First crossing of the heightfield along the ray, to float32 precision.
 
     1. Clip the ray to the box footprint x [level - sum|A|, level + sum|A|] (padded by
@@ -157,6 +171,10 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
        (tmin, tmax) is a crossing, so no refinement is done.
     3. Refine: `refine` Illinois (modified regula falsi) steps, which keep the bracket and
        converge superlinearly, then one Newton step clamped to the bracket.
+
+    `steep` (static; only for rays that `steep` holds for): f is monotone along the ray,
+    so the box's two ends bracket the only crossing: no march, and STEEP_EXTRA_REFINE more
+    Illinois steps for the wider bracket (the same root to float32 round-off).
 
     A crossing pair closer together than one march segment (the ray grazing a crest by
     less than a segment) can be missed; with 16 segments the segment is at most ~18 cm
@@ -175,7 +193,12 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
         h, _, _ = water_height(w, o.x + t * d.x, o.z + t * d.z, grad=False)
         return o.y + t * d.y - h
 
-    ts = t0 + (t1c - t0) * (jnp.arange(steps + 1, dtype=o.x.dtype) / steps)
+    if steep:  # (a ray that `steep` holds for): its two end points alone, the second as
+        # the march computes its last one
+        ts = t0 + (t1c - t0) * (jnp.asarray([0, steps], o.x.dtype) / steps)
+        refine = refine + STEEP_EXTRA_REFINE  # a bracket `steps` times as wide
+    else:
+        ts = t0 + (t1c - t0) * (jnp.arange(steps + 1, dtype=o.x.dtype) / steps)
     fs = f(ts)
     # o on the surface (f(t0) within its rounding): use the sign the ray moves towards
     x0, z0 = o.x + t0 * d.x, o.z + t0 * d.z
@@ -273,10 +296,15 @@ def water_hits(w: Water, o: Vec3, d: Vec3, want, steps: int, split: int) -> Arra
     `intersect_water`'s own answer for a ray that misses the box. The rays that meet it go
     through a work queue (`_queue.masked_map`), because under `vmap` every lane would pay
     for the march and the refinement: in a 256x256 depth-8 pass of the pool about half the
-    rays never meet the box (46 % of VCM's, 54 % of PT's; `docs/design.md`)."""
+    rays never meet the box (46 % of VCM's, 54 % of PT's; `docs/design.md`). The `steep`
+    rays among them are queued first and bracketed by the box alone (no march): in the
+    pool most are steep (camera rays, and diffuse bounces off the floor)."""
     meet = want & jax.vmap(meets_slab, in_axes=(None, 0, 0, None, None))(w, o, d, 0.0, INF)
     return masked_map(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, steps), meet,
-                      (o, d), INF, split)
+                      (o, d), INF, split,
+                      cheap=(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, steps,
+                                                            steep=True),
+                             jax.vmap(steep, in_axes=(None, 0))(w, d)))
 
 
 def inside_water(w: Water, p: Vec3) -> Array:

@@ -31,11 +31,13 @@ def round_width(n: int, split: int) -> int:
     return max(-(-n // split), min(n, MIN_ROUND))
 
 
-def masked_map(fn: Callable, mask, args, fill, split: int):
+def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None):
     """`fn` vmapped over the items of `args` (pytree of arrays with leading item axes of
     `mask`'s shape) where `mask` holds; `fill` (pytree of scalars, like fn's output)
     elsewhere. `split`: rounds per full sweep (`round_width`); 1 = one round of every
-    item."""
+    item. `cheap`: None, or (cheap_fn, cheap_mask): a cheaper `fn` that is valid for the
+    items where cheap_mask holds; those items are queued first, and a round made of them
+    alone runs cheap_fn (a round that mixes both kinds runs `fn`, valid for every item)."""
     shape = mask.shape
     M = mask.size
     flat = jax.tree.map(lambda a: a.reshape((M,) + a.shape[len(shape):]), args)
@@ -47,20 +49,43 @@ def masked_map(fn: Callable, mask, args, fill, split: int):
                                                   jnp.asarray(f, r.dtype)), res, fill)
         return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
     rounds = -(-M // W)
-    order = jnp.nonzero(mask.reshape(M), size=rounds * W, fill_value=M)[0].reshape(rounds, W)
+    m = mask.reshape(M)
     count = jnp.sum(mask, dtype=jnp.int32)
+    if cheap is None:
+        order = jnp.nonzero(m, size=rounds * W, fill_value=M)[0]
+    else:  # the cheap items first, in order, then the others: each item's place from
+        # a running count of its kind (one scatter, as `nonzero` does)
+        cheap_fn, cm = cheap
+        first = m & cm.reshape(M)
+        n_cheap = jnp.sum(first, dtype=jnp.int32)
+        rest = m & ~first
+        at = jnp.where(first, jnp.cumsum(first, dtype=jnp.int32) - 1,
+                       jnp.where(rest, n_cheap + jnp.cumsum(rest, dtype=jnp.int32) - 1,
+                                 rounds * W))
+        order = jnp.full((rounds * W,), M, jnp.int32).at[at].set(
+            jnp.arange(M, dtype=jnp.int32), mode="drop")
+    order = order.reshape(rounds, W)
     vfn = jax.vmap(fn)
     shapes = jax.eval_shape(vfn, *jax.tree.map(lambda a: a[:1], flat))
     out0 = jax.tree.map(lambda f, s: jnp.full((M,) + s.shape[1:], f, s.dtype), fill, shapes)
 
-    def work(out, idx):
+    def work(out, idx, f=vfn):
         g = jnp.minimum(idx, M - 1)
-        res = vfn(*jax.tree.map(lambda a: a[g], flat))
+        res = f(*jax.tree.map(lambda a: a[g], flat))
         return jax.tree.map(lambda o, r: o.at[idx].set(r, mode="drop"), out, res)
 
-    def body(out, x):
-        r, idx = x
-        return jax.lax.cond(r * W < count, work, lambda o, _: o, out, idx), None
+    if cheap is None:
+        def body(out, x):
+            r, idx = x
+            return jax.lax.cond(r * W < count, work, lambda o, _: o, out, idx), None
+    else:
+        def body(out, x):
+            r, idx = x
+            all_cheap = jnp.minimum((r + 1) * W, count) <= n_cheap  # (the padding: none)
+            branch = jnp.where(r * W >= count, 0, jnp.where(all_cheap, 1, 2))
+            return jax.lax.switch(branch, [lambda o, _: o,
+                                           lambda o, i: work(o, i, jax.vmap(cheap_fn)),
+                                           work], out, idx), None
 
     out, _ = jax.lax.scan(body, out0, (jnp.arange(rounds, dtype=jnp.int32), order))
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)

@@ -772,3 +772,37 @@ def test_crosses_water_is_the_marchs_answer(pools, family, dt):
     if family == "hit":
         past = np.isfinite(t) & (tmax > 1.01 * t)
         assert np.mean(cr[past]) > 0.5, "crosses_water misses most clear crossings"
+
+
+@pytest.mark.parametrize("dt", DTYPES)
+@pytest.mark.parametrize("family", ["hit", "miss", "surface"])
+def test_steep_rays_need_no_march(pools, family, dt):
+    """`steep` rays (|d_y| > L |d_xz|, L = sum |A| |k| bounds the surface's slope) meet the
+    surface at most once, so the surface's box brackets the crossing: `intersect_water(...,
+    steep=True)` (no march, two more Illinois steps) gives the march's hits and misses, the
+    same distance within the heightfield tolerance, and for "hit" the float64 reference
+    root. Not vacuous: most rays of these families are steep (asserted), and the criterion
+    is checked against the slope bound itself: f' = d_y - grad h . d_xz keeps one sign
+    along each steep ray (sampled densely in float64)."""
+    water, ref, o, d, t = _water_setup(pools, family, dt)
+    ov, dv = as_vec(o, dt), as_vec(d, dt)
+    st = np.asarray(jax.vmap(G.steep, in_axes=(None, 0))(water, dv))
+    assert st.mean() > 0.5, f"{family}: only {st.mean():.0%} steep rays"
+    zero, inf = zero_inf(dt)
+    ts = np.asarray(jax.vmap(lambda o_, d_: G.intersect_water(water, o_, d_, zero, inf,
+                                                              steep=True))(ov, dv), np.float64)
+    np.testing.assert_array_equal(np.isfinite(ts[st]), np.isfinite(t[st]))
+    assert_distances(ts[st], t[st], water_tol(dt, t[st]), f"steep/{family} vs march")
+    if family == "hit":
+        first = np.array([ref.roots(o[i], d[i])[0][0] for i in np.flatnonzero(st)])
+        assert_distances(ts[st], first, water_tol(dt, first), "steep/hit vs reference")
+    # the criterion: along a steep ray inside the footprint, f' never changes sign
+    w64 = pools["float64"].water
+    s = np.linspace(-3.0, 3.0, 257)
+    for i in np.flatnonzero(st)[:32]:
+        x = o[i, 0] + s * d[i, 0]
+        z = o[i, 2] + s * d[i, 2]
+        _, hx, hz = (np.asarray(a) for a in G.water_height(w64, jnp.asarray(x, jnp.float64),
+                                                           jnp.asarray(z, jnp.float64)))
+        fp = d[i, 1] - (hx * d[i, 0] + hz * d[i, 2])
+        assert np.all(fp > 0) or np.all(fp < 0), f"steep ray {i}: f' changes sign"

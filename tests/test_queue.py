@@ -83,3 +83,32 @@ def test_queued_trace_runs_every_step_of_every_lane():
     # NEE and emitter hits in a furnace: every path's value is exactly 1.875 up to MIS
     # noise; the mean of 2304 of them is within 1 %
     assert abs(out[1][0].mean() / 1.875 - 1.0) < 0.01, out[1][0].mean()
+
+
+@pytest.mark.parametrize("frac", [0.0, 0.6, 1.0])
+def test_masked_map_cheap_rounds(frac):
+    # 6000 items, rounds of MIN_ROUND: the items `cheap_mask` marks are queued first, and a
+    # round made of them alone runs cheap_fn. cheap_fn here returns a tagged value (+1000)
+    # so the test sees which kernel each item got: every unmarked item gets fn, a marked
+    # item gets cheap_fn unless it shared a round with unmarked ones (at most one round of
+    # MIN_ROUND items), and each wanted item lands in its own place once.
+    rng = np.random.default_rng(1)
+    n = 6000
+    mask = jnp.asarray(rng.random(n) < 0.8)
+    cm = jnp.asarray(rng.random(n) < frac)
+    a = jnp.asarray(rng.normal(size=n))
+    fn = lambda x: jnp.sin(x)  # noqa: E731
+    cheap = lambda x: jnp.sin(x) + 1000.0  # noqa: E731
+    got = np.asarray(jax.jit(lambda m, c, x: masked_map(fn, m, (x,), 0.0, 8, cheap=(cheap, c)))(
+        mask, cm, a))
+    want = np.sin(np.asarray(a))
+    m, c = np.asarray(mask), np.asarray(cm)
+    tagged = got > 500
+    np.testing.assert_allclose(np.where(tagged, got - 1000.0, got), np.where(m, want, 0.0),
+                               rtol=1e-6, atol=1e-6)
+    assert not np.any(tagged & ~(m & c)), "cheap_fn ran on an item it is not valid for"
+    n_cheap = int(np.sum(m & c))
+    W = 6000 // 8 if 6000 // 8 >= MIN_ROUND else MIN_ROUND
+    assert int(np.sum(tagged)) >= n_cheap - W, "the marked items did not get cheap rounds"
+    if frac == 1.0:
+        assert int(np.sum(tagged)) == n_cheap
