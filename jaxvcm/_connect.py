@@ -11,12 +11,14 @@ MIS weight from the subpaths' partial sums and its join (the `parts` argument: (
 camera) `_mis_partial.Partials`), or from the full-path assembly (`_path.family_weights`)
 when `parts` is None (the recursive form, ppm).
 
-With partial sums, next-event estimation, light tracing and the connections are work
-queues over (technique, lane) items (`_queue.masked_map`): only the items whose vertices
-exist and can connect (live, non-delta) run the kernel, one item at a time vmapped, each
+With partial sums (or the recursive form's carried records), emitter hits, next-event
+estimation, light tracing and the connections are work queues over (technique, lane)
+items (`_queue.masked_map`): only the items whose vertices exist and can contribute
+(live and emitting; live and non-delta) run the kernel, one item at a time vmapped, each
 gathering its vertices and its partial-sum entries (`_mis_partial.join_weight`), so the
-cost follows the live vertices, not D x N or D^2 x N slots. Emitter hits and the
-recursive form stay dense families over [J, N]: static slices, one kernel per family.
+cost follows the live vertices, not D x N or D^2 x N slots. Without them (ppm's
+assembled paths, and direct calls with parts=None) the techniques are dense families
+over [J, N]: static slices, one kernel per family.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from ._path import (Pdfs, both_dispersed, family_join_weights, family_weights, l
 from ._queue import masked_map
 from ._scene import DELTA_LIGHTS, LIGHT_BACKGROUND, LIGHT_SKY, Scene
 from ._subpath import PathEnds, rows, vertex_table
+from ._uniforms import Uniforms
 from ._vec import Vec3
 
 
@@ -212,6 +215,9 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.
     D = cfg.max_depth
     dt = cam.A.dtype
     js = np.arange(1, D + 1)
+    if parts is not None:
+        val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas)
+        return {(0, int(j) + 1): val[i] for i, j in enumerate(js)}
     z, zp = rows(cam, js), rows(cam, js - 1)  # z_j and z_{j-1}
     Le = verts.Le  # [D, N, C] for z_1..z_D
     esc = verts.escaped
@@ -243,6 +249,8 @@ def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0,
     if parts is not None:
         val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas)
         return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
+    if isinstance(u_nee, Uniforms):
+        u_nee = u_nee.dense()
     z, zp = rows(cam, js), rows(cam, js - 1)
     ls = vv(lambda p_, u: lights.sample_light(scene, p_, u[0], u[1], u[2]))(z.p, u_nee)
     is_delta_l = jnp.asarray([k in DELTA_LIGHTS for k in scene.lights.kind])[ls.light]
@@ -423,6 +431,45 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
     return masked_map(item, ok, (jj, nn), 0.0, J)
 
 
+def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
+                         verts: subpath.Vertex, parts, etas):
+    """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
+    only the live vertices that see emission (a light, or the sky after an escape) evaluate
+    the join; in the pool about one camera vertex in 200. The same arithmetic per item as
+    the dense family (which gathered every field of every row twice and weighted every
+    slot: its cost grew with the depth, not with the hits)."""
+    N = cam.A.shape[1]
+    D = cfg.max_depth
+    dt = cam.A.dtype
+    log_n = log_n_light_tracing(cfg, N, dt)
+    L0 = no_light_partials(cfg, 1, dt, etas)  # s = 0: an empty light side (one lane)
+    sky = _sky_id(scene)
+    sg = jax.lax.stop_gradient
+    cam_at = vertex_table(cam)
+    if cam.table is not None:  # z_j's whole record from the packed table (one gather)
+        rec_at = cam.table.record
+    else:
+        rec_at = lambda j, n: jax.tree.map(lambda a: a[j - 1, n], verts)  # noqa: E731
+
+    def item(i, n):  # z_j, j = i + 1: technique (0, j + 1)
+        z, zp, r = cam_at(i + 1, n), cam_at(i, n), rec_at(i + 1, n)
+        esc = r.escaped
+        lid = jnp.where(esc, sky, jnp.maximum(r.light, 0))
+        A_s, A_s1, _, _ = emitter_hit_join_pdfs(scene, z, zp, lid, esc)
+        one = jnp.ones((), dt)
+        w = sg(mis_join(cfg).join_weight(cfg, jnp.asarray(0, jnp.int32), i + 2, L0, parts[1],
+                                         sg(A_s), sg(A_s1), one, one, jnp.zeros((), bool),
+                                         esc, sg(log_n), lanes=((0,), (n,))))
+        return z.beta * r.Le * w
+
+    ok = verts.alive & jnp.any(verts.Le > 0, axis=-1)
+    ii = jnp.broadcast_to(jnp.arange(D, dtype=jnp.int32)[:, None], (D, N))
+    nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (D, N))
+    # narrow rounds (N / 8 items): a round costs its width whatever it holds, and the hits
+    # are few (the pool: ~1 in 200 camera vertices; with a sky, up to one per path)
+    return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
+
+
 def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, parts, js,
                        etas):
     """Next-event estimation [J, N, C] from z_j (j = js) as one work queue over (vertex,
@@ -440,10 +487,14 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
     sg = jax.lax.stop_gradient
 
     cam_at = vertex_table(cam)
+    if isinstance(u_nee, Uniforms) and not u_nee.lazy:  # (no per-item hash: the table)
+        u_nee = u_nee.dense()
 
     def shadow_ray(i, n, z):  # the light sample of item (i, n) at z and its shadow ray
         p, nz, med = z.p, z.n, z.medium
-        u = u_nee[i, n]
+        # the light sample's uniforms hashed for this item alone (`_uniforms`: the dense
+        # table hashed every (depth, lane) slot, dead or alive)
+        u = u_nee.at(i, n) if isinstance(u_nee, Uniforms) else u_nee[i, n]
         ls = lights.sample_light(scene, p, u[0], u[1], u[2])
         inf = ~jnp.isfinite(ls.dist)
         dist = jnp.where(inf, 0.0, ls.dist)

@@ -274,7 +274,7 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 # ---- [s = 1] next-event estimation at camera vertices
 def next_event(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, D, dt = _dims(scene, cfg)
-    u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt).dense()
+    u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt)  # hashed where used
     return _add(st, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas, st.parts))
 
 

@@ -46,7 +46,7 @@ from . import _media as media
 from . import _mis_recursive as mis_recursive
 from . import _vec as vec
 from ._config import RenderConfig
-from ._queue import Packed, round_width
+from ._queue import Packed, first_true, round_width
 from ._scene import MAT_DIFFUSE, MAT_GLOSSY, MAT_NAMES, Scene, Water
 from ._uniforms import Uniforms
 from ._vec import Vec3
@@ -368,7 +368,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
 
     def advance(carry):
         S, k, V, rev0 = carry
-        lane = jnp.nonzero(S["bool"][:, alive_col] & (k < limit), size=W, fill_value=L)[0]
+        lane = first_true(S["bool"][:, alive_col] & (k < limit), W)
         g = jnp.minimum(lane, L - 1)  # padding lanes compute lane L-1's step; dropped below
         kg = jnp.minimum(k[g], n_steps - 1)
         s_g = state_pack.unpack({d: a[g] for d, a in S.items()})
@@ -549,9 +549,12 @@ class VertexTable:
     def tree_unflatten(cls, aux, children):
         return cls(aux[0], children[0], aux[1], aux[2])
 
+    def record(self, i, n) -> Vertex:
+        """The record of vertex i of lane n (row i: the start vertex is row 0)."""
+        return self.layout.unpack({d: a[i, n + self.lane0] for d, a in self.arrays.items()})
+
     def at(self, i, n) -> PathEnds:
-        rec = self.layout.unpack({d: a[i, n + self.lane0] for d, a in self.arrays.items()})
-        return ends(rec, self.light)
+        return ends(self.record(i, n), self.light)
 
 
 def vertex_table(ends: PathEnds):

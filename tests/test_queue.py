@@ -9,7 +9,7 @@ import pytest
 
 import jaxvcm
 from jaxvcm import RenderConfig
-from jaxvcm._queue import MIN_ROUND, Packed, masked_map
+from jaxvcm._queue import MIN_ROUND, Packed, first_true, masked_map
 
 
 @pytest.mark.parametrize("split", [1, 3, 8])
@@ -112,3 +112,54 @@ def test_masked_map_cheap_rounds(frac):
     assert int(np.sum(tagged)) >= n_cheap - W, "the marked items did not get cheap rounds"
     if frac == 1.0:
         assert int(np.sum(tagged)) == n_cheap
+
+
+@pytest.mark.parametrize("density", [0.0, 0.3, 1.0])
+@pytest.mark.parametrize("size", [1, 700, 5000])
+def test_first_true_equals_nonzero(density, size):
+    # `first_true` is jnp.nonzero(m, size=size, fill_value=m.size) by another route (one
+    # running count, one scatter): the same indices in the same order, the same padding,
+    # and the True items beyond `size` left out, for a size below, near and above the count
+    rng = np.random.default_rng(1)
+    m = jnp.asarray(rng.random(3000) < density)
+    got = jax.jit(first_true, static_argnums=1)(m, size)
+    want = jnp.nonzero(m, size=size, fill_value=m.size)[0]
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
+def test_queued_emitter_hits_and_lazy_nee_uniforms():
+    # PT (depth 4) on the pool under a sky at 48x48: 2304 camera paths, so the emitter-hit
+    # queue (rounds of N / 8 = 288 -> MIN_ROUND items over 4 x 2304 slots) runs 9 rounds.
+    # (1) The queued emitter hits (weights from the camera partials, `_mis_partial.join`)
+    # equal the dense family (weights from the assembled full paths, `_mis`): the same
+    # contribution per (technique, path) to float32 round-off, and the sky is hit (mean > 0).
+    # (2) Next-event estimation hashing each item's uniforms (`Uniforms.at`) equals it
+    # reading the dense table: the same numbers (`_uniforms`), so the same values exactly.
+    from jaxvcm import _connect as connect, _integrator as integ
+    from jaxvcm._uniforms import Uniforms
+    scene = jaxvcm.load_scene("scenes/pool_sky.toml", width=48, height=48)
+    cfg = RenderConfig(algorithm="pt", max_depth=4)
+
+    @jax.jit
+    def run(key):
+        st = integ.PassState(key=key, pass_index=0)
+        for name, stage in integ.pass_stages(cfg):
+            if name in ("emitter hits", "next-event estimation"):
+                break
+            st = stage(scene, cfg, st)
+        q = connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts)
+        d = connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, None)
+        u = Uniforms.draw(st.keys[2], (cfg.max_depth - 1, 48 * 48, 3), jnp.float32)
+        nl = connect.next_event(scene, cfg, st.cends, u, st.mis_etas, st.parts)
+        nd = connect.next_event(scene, cfg, st.cends, u.dense(), st.mis_etas, st.parts)
+        return q, d, nl, nd
+
+    q, d, nl, nd = run(jaxvcm.pass_key(0, 0))
+    assert set(q) == set(d) == {(0, j) for j in range(2, cfg.max_depth + 2)}
+    assert float(sum(jnp.sum(v) for v in q.values())) > 0
+    for label in q:
+        np.testing.assert_allclose(np.asarray(q[label]), np.asarray(d[label]), rtol=2e-5,
+                                   atol=1e-6 * float(jnp.max(d[label]) + 1e-30))
+    assert float(sum(jnp.sum(v) for v in nl.values())) > 0
+    for label in nl:
+        np.testing.assert_array_equal(np.asarray(nl[label]), np.asarray(nd[label]))
