@@ -88,6 +88,10 @@ class RenderConfig:
                  `_queue.MIN_ROUND`) per round, taking
                  only lanes whose subpath is still alive (`_subpath.trace`); 1 = every
                  lane every round. Changes the work, not the result.
+    trace_tail:  a round of a single-direction trace (PT, light tracing) with at most
+                 1/trace_tail of a round's lanes left alive runs a step that narrow (at
+                 least `_subpath.TAIL_MIN` lanes, else no tail rounds: `tail_width`);
+                 1 = off. Changes the work, not the result.
     chunks:      camera and light paths of a pass are traced in this many chunks, one
                  after the other (`lax.scan`), so a pass's memory is that of 1/chunks of its
                  paths (bounded memory, `chunks_for_memory`). Chunk c has the paths
@@ -115,6 +119,7 @@ class RenderConfig:
     photon_capacity: int = 0
     mis_form: str = "explicit"
     trace_split: int = 8
+    trace_tail: int = 8
     chunks: int = 1
 
     @property
@@ -129,7 +134,7 @@ class RenderConfig:
             raise ValueError(f"config.mis: unknown {self.mis!r}; one of {MIS_HEURISTICS}")
         if self.mis_form not in MIS_FORMS:
             raise ValueError(f"config.mis_form: unknown {self.mis_form!r}; one of {MIS_FORMS}")
-        for name in ("max_depth", "march_steps", "spp", "trace_split", "chunks"):
+        for name in ("max_depth", "march_steps", "spp", "trace_split", "trace_tail", "chunks"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")

@@ -60,6 +60,7 @@ KIND_NONE = -1
 N_UNIFORMS = 6  # per bounce: channel, distance, direction (2), lobe, roulette
 Q_SPECULAR = 0.95  # local RR survival at delta and medium vertices
 WATER_SPLIT = 4  # rounds per sweep of a trace round's water queue (`geometry.water_hits`)
+TAIL_MIN = 512  # narrowest tail round of the trace (`tail_width`)
 
 
 class Vertex(NamedTuple):
@@ -366,9 +367,9 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     rev0 = jnp.ones((L,), s0.pdf_w.dtype)
     k0 = jnp.zeros((L,), jnp.int32)  # vertices recorded so far, per lane
 
-    def advance(carry):
+    def advance(carry, width=W):
         S, k, V, rev0 = carry
-        lane = first_true(S["bool"][:, alive_col] & (k < limit), W)
+        lane = first_true(S["bool"][:, alive_col] & (k < limit), width)
         g = jnp.minimum(lane, L - 1)  # padding lanes compute lane L-1's step; dropped below
         kg = jnp.minimum(k[g], n_steps - 1)
         s_g = state_pack.unpack({d: a[g] for d, a in S.items()})
@@ -393,20 +394,50 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         rev0 = rev0.at[jnp.where(kg == 0, lane, L)].set(v.pdf_rev, mode="drop")
         return S, k, V, rev0
 
-    def body(carry, _):
-        S, k = carry[0], carry[1]
-        busy = jnp.any(S["bool"][:, alive_col] & (k < limit))
-        return jax.lax.cond(busy, advance, lambda c: c, carry), None
+    Wt = tail_width(W, cfg, static)
+
+    def sweep(carry, width, more, n_rounds):  # rounds of `width` lanes while more(n_live)
+        def body(c, _):
+            live = c[0]["bool"][:, alive_col] & (c[1] < limit)
+            go = more(jnp.sum(live, dtype=jnp.int32))
+            return jax.lax.cond(go, lambda c_: advance(c_, width), lambda c_: c_, c), None
+
+        return jax.lax.scan(body, carry, None, length=n_rounds)[0]
 
     V0 = {d: jnp.broadcast_to(a[None], (n_rows,) + a.shape) for d, a in rec_pack.arrays.items()}
     if v0 is not None:  # row 0: the start vertices
         P0 = rec_pack.pack(v0)
         V0 = {d: a.at[0].set(P0[d]) for d, a in V0.items()}
     carry = (state_pack.arrays, k0, V0, rev0)
-    (_, _, V, rev0), _ = jax.lax.scan(body, carry, None, length=rounds)
+    if Wt is None:
+        carry = sweep(carry, W, lambda n: n > 0, rounds)
+    else:  # the tail: once at most Wt lanes are left (it stays so: lanes only die), each
+        # round advances all of them, at most n_steps rounds, a step Wt wide
+        carry = sweep(carry, W, lambda n: n > Wt, rounds)
+        carry = sweep(carry, Wt, lambda n: n > 0, n_steps)
+    _, _, V, rev0 = carry
     if v0 is not None:  # the records, and the same packed (`VertexTable`)
         return rec_pack.unpack(V), (rec_pack, V)
     return rec_pack.unpack(V), rev0
+
+
+def tail_width(W: int, cfg: RenderConfig, single: bool) -> int | None:
+    """Width of the trace's tail rounds (`trace`), or None for none: W / cfg.trace_tail
+    lanes, when that is at least TAIL_MIN, in single-direction traces (`single`).
+
+    The queue's last rounds are not full: once fewer than W lanes are alive, each round
+    advances all of them by one vertex, yet a W-wide round costs its width whatever it
+    holds. With Russian roulette the survivors thin out geometrically, so these rounds
+    grow with the maximum depth, not with the vertices (PT on the pool at 256x256: 4 of
+    31 rounds at depth 8, 12 of 41 at depth 16, holding 3914 .. 12 lanes of 8192). A
+    second copy of the step, Wt wide, runs the rounds with at most Wt lanes left: PT at
+    depth 16 0.237 -> 0.228 s, for ~2 s more compile time. Only in single-direction traces
+    (PT, light tracing): in `trace_both` the copy would cost VCM's first pass its
+    15 s budget (docs/design.md, "Speed, tenth step")."""
+    if not single or cfg.trace_tail <= 1:
+        return None
+    Wt = W // cfg.trace_tail
+    return Wt if Wt >= TAIL_MIN else None
 
 
 def _trace_all(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,

@@ -68,18 +68,24 @@ def test_queued_trace_runs_every_step_of_every_lane():
     # 12 in all; the trace once ran ceil(4 x 2304 / 1024) = 9 rounds, so lanes 2111.. stopped
     # at depth 2 and the image came out 3.7 % dark (1.8055 against 1 + .5 + .25 + .125 =
     # 1.875). Now the vertex counts equal the plain loop's (trace_split 1) and the image
-    # equals it and the closed form.
+    # equals it and the closed form. With trace_tail 2 the rounds with at most 512 live
+    # lanes run a step 512 wide (`_subpath.tail_width`): here the last 256 lanes' 4 rounds,
+    # which must still take every step (the default, 1024 / 8 = 128 < TAIL_MIN: none).
+    from jaxvcm._subpath import TAIL_MIN, tail_width
     from . import _analytic as A
     scene = jaxvcm.scene_from_dict(A.sphere_furnace((1.0, 1.0, 1.0), (0.5, 0.5, 0.5), w=12, h=12))
     key = jaxvcm.pass_key(0, 0)
     out = []
-    for split in (1, 8):
-        cfg = RenderConfig(algorithm="pt", max_depth=4, spp=16, trace_split=split)
+    for split, tail in ((1, 8), (8, 8), (8, 2)):
+        cfg = RenderConfig(algorithm="pt", max_depth=4, spp=16, trace_split=split,
+                           trace_tail=tail)
+        assert (tail_width(MIN_ROUND, cfg, True) == TAIL_MIN) == (tail == 2)
         img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(scene, key, cfg)
         out.append((np.asarray(img, np.float64), int(diag.camera_vertices)))
     assert 12 * 12 * 16 > 2 * MIN_ROUND
-    assert out[1][1] == out[0][1] == 12 * 12 * 16 * 4, (out[0][1], out[1][1])
-    np.testing.assert_allclose(out[1][0], out[0][0], rtol=1e-5, atol=1e-7)
+    for o in out[1:]:
+        assert o[1] == out[0][1] == 12 * 12 * 16 * 4, (out[0][1], o[1])
+        np.testing.assert_allclose(o[0], out[0][0], rtol=1e-5, atol=1e-7)
     # NEE and emitter hits in a furnace: every path's value is exactly 1.875 up to MIS
     # noise; the mean of 2304 of them is within 1 %
     assert abs(out[1][0].mean() / 1.875 - 1.0) < 0.01, out[1][0].mean()
@@ -163,3 +169,4 @@ def test_queued_emitter_hits_and_lazy_nee_uniforms():
     assert float(sum(jnp.sum(v) for v in nl.values())) > 0
     for label in nl:
         np.testing.assert_array_equal(np.asarray(nl[label]), np.asarray(nd[label]))
+
