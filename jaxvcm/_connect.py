@@ -209,15 +209,17 @@ def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
 
 # ---------------------------------------------------------------- s = 0
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
-                 etas=(0.0, 0.0), parts=None):
-    """z_j on an emitter or at infinity (sky), j = 1..D: technique (0, j + 1)."""
+                 etas=(0.0, 0.0), parts=None, summed=False):
+    """z_j on an emitter or at infinity (sky), j = 1..D: technique (0, j + 1).
+    {label: [N, C]}; with `summed` and `parts` the family's sum per path and its count of
+    non-finite values instead (`_queue.masked_map`'s summed mode)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
     js = np.arange(1, D + 1)
     if parts is not None:
-        val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas)
-        return {(0, int(j) + 1): val[i] for i, j in enumerate(js)}
+        val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas, summed)
+        return val if summed else {(0, int(j) + 1): val[i] for i, j in enumerate(js)}
     z, zp = rows(cam, js), rows(cam, js - 1)  # z_j and z_{j-1}
     Le = verts.Le  # [D, N, C] for z_1..z_D
     esc = verts.escaped
@@ -240,15 +242,15 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.
 
 # ---------------------------------------------------------------- s = 1
 def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0, 0.0),
-               parts=None):
-    """NEE from z_j, j = 1..D-1: technique (1, j + 1)."""
+               parts=None, summed=False):
+    """NEE from z_j, j = 1..D-1: technique (1, j + 1) (`summed`: as in `emitter_hits`)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
     js = np.arange(1, D)
     if parts is not None:
-        val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas)
-        return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
+        val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas, summed)
+        return val if summed else {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
     if isinstance(u_nee, Uniforms):
         u_nee = u_nee.dense()
     z, zp = rows(cam, js), rows(cam, js - 1)
@@ -330,8 +332,9 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
 
 # ---------------------------------------------------------------- s, t >= 2
 def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e: lights.Emission,
-                etas=(0.0, 0.0), parts=None):
-    """z_{t-1} joined to y_{s-1} for s, t >= 2, s + t - 1 <= D."""
+                etas=(0.0, 0.0), parts=None, summed=False):
+    """z_{t-1} joined to y_{s-1} for s, t >= 2, s + t - 1 <= D (`summed`: as in
+    `emitter_hits`)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
@@ -341,8 +344,8 @@ def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e
     ss = np.array([p[0] for p in pairs])
     ts = np.array([p[1] for p in pairs])
     if parts is not None:
-        val = _connections_queued(scene, cfg, lig, cam, e, parts, ss, ts)
-        return {pr: val[i] for i, pr in enumerate(pairs)}
+        val = _connections_queued(scene, cfg, lig, cam, e, parts, ss, ts, summed)
+        return val if summed else {pr: val[i] for i, pr in enumerate(pairs)}
     y, yp = rows(lig, ss - 1), rows(lig, ss - 2)
     z, zp = rows(cam, ts - 1), rows(cam, ts - 2)
     ok = y.alive & ~y.delta & z.alive & ~z.delta
@@ -384,7 +387,7 @@ def _tr_one(scene: Scene, wseg, d):
 
 
 def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds,
-                        e: lights.Emission, parts, ss, ts):
+                        e: lights.Emission, parts, ss, ts, summed=False):
     """The (s, t >= 2) connections [J, N, C] as one work queue over (technique, lane)
     items: only the pairs of live, non-delta vertices run the kernel (the shadow ray, both
     scattering factors, the four join pdfs and the join weight), each gathering its four
@@ -428,11 +431,11 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
     # (a first queue that drops the pairs whose segment crosses the water surface, 23 % of
     # the live pairs in the pool, cost more than it saved: docs/design.md)
     # rounds of N items: a few live pairs per path at most in the shipped scenes
-    return masked_map(item, ok, (jj, nn), 0.0, J)
+    return masked_map(item, ok, (jj, nn), 0.0, J, summed=summed)
 
 
 def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
-                         verts: subpath.Vertex, parts, etas):
+                         verts: subpath.Vertex, parts, etas, summed=False):
     """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
     only the live vertices that see emission (a light, or the sky after an escape) evaluate
     the join; in the pool about one camera vertex in 200. The same arithmetic per item as
@@ -467,11 +470,11 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (D, N))
     # narrow rounds (N / 8 items): a round costs its width whatever it holds, and the hits
     # are few (the pool: ~1 in 200 camera vertices; with a sky, up to one per path)
-    return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
+    return masked_map(item, ok, (ii, nn), 0.0, 8 * D, summed=summed)
 
 
 def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, parts, js,
-                       etas):
+                       etas, summed=False):
     """Next-event estimation [J, N, C] from z_j (j = js) as one work queue over (vertex,
     lane) items: only live, non-delta camera vertices sample a light, trace the shadow ray
     and evaluate the join (in the pool about 40 % of the J x N slots). The same arithmetic
@@ -542,7 +545,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         # live NEE items (55 % in pool_sun), which then skip the shadow ray and the join
         want = want & masked_map(worth, want, (ii, nn), False, 2 * J)
     # rounds of N / 2 items (about 2.4 live NEE vertices per path in the pool)
-    return masked_map(item, want, (ii, nn), 0.0, 2 * J)
+    return masked_map(item, want, (ii, nn), 0.0, 2 * J, summed=summed)
 
 
 def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission,

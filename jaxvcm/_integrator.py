@@ -48,7 +48,10 @@ class Technique(NamedTuple):
     kind "merge": vertex merging at camera vertex z_{t-1} (bpm, vcm), every path length
          (s = 0: any number of light vertices), or with `technique_images(merge_lengths=True)`
          of photon y_{s-1} only (s >= 2: a path of s + t - 2 segments);
-    kind "gather": ppm's photon gather (s = t = 0).
+    kind "gather": ppm's photon gather (s = t = 0);
+    kind "sum": a family's techniques summed per path (s = 0 emitter hits, s = 1
+         next-event estimation, s = 2 the connections; t = 0), in a pass that wants only
+         the image (`integrate`): its queue adds each item into its path's row.
     """
 
     kind: str
@@ -104,6 +107,10 @@ class PassState(eqx.Module):
     lends: Any = None
     parts: Any = None  # (light, camera) MIS partial sums, or None
     merge_lengths: bool = eqx.field(static=True, default=False)  # merges split by photon
+    # only the image is wanted (`integrate`): the queued families come summed per path
+    # ("sum" labels), with their count of non-finite values in `bad`
+    summed: bool = eqx.field(static=True, default=False)
+    bad: Any = 0
     labels: tuple[Technique, ...] = eqx.field(static=True, default=())
     values: tuple = ()  # per label: [N, C] per camera path, or a (pixel, value) splat
     merged: Any = None  # `_merge.Merged`: overflow flags, candidates and photons needed
@@ -157,6 +164,16 @@ def _add(st: PassState, out: dict) -> PassState:
             labels.append(label)
             values.append(val)
     return dataclasses.replace(st, labels=tuple(labels), values=tuple(values))
+
+
+def _add_family(st: PassState, s: int, out) -> PassState:
+    """`_add` for a family of techniques: a dict of technique values as it is, or a
+    summed family (value [N, C], non-finite count) as one "sum" label."""
+    if isinstance(out, dict):
+        return _add(st, out)
+    val, bad = out
+    st = _add(st, {Technique("sum", s, 0): val})
+    return dataclasses.replace(st, bad=st.bad + bad)
 
 
 # ---- setup: the pass's random keys and merging radius
@@ -268,14 +285,16 @@ def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 
 # ---- [s = 0] emitter hits of the camera subpaths (ppm: in its gather)
 def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    return _add(st, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts))
+    return _add_family(st, 0, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas,
+                                                   st.parts, st.summed))
 
 
 # ---- [s = 1] next-event estimation at camera vertices
 def next_event(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, D, dt = _dims(scene, cfg)
     u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt)  # hashed where used
-    return _add(st, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas, st.parts))
+    return _add_family(st, 1, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas,
+                                                 st.parts, st.summed))
 
 
 # ---- [t = 1] light tracing: light vertices splatted onto the film through the pinhole
@@ -290,8 +309,8 @@ def light_tracing(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 
 # ---- [s, t >= 2] connections of camera and light vertices
 def connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    return _add(st, connect.connections(scene, cfg, st.lends, st.cends, st.emission,
-                                        st.mis_etas, st.parts))
+    return _add_family(st, 2, connect.connections(scene, cfg, st.lends, st.cends, st.emission,
+                                                  st.mis_etas, st.parts, st.summed))
 
 
 # ---- merging: hash grid over the light vertices, gather at camera vertices
@@ -401,7 +420,7 @@ def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
     check_chunks(scene, cfg)
     if cfg.chunks > 1:
         return _integrate_chunks(scene, key, cfg, pass_index)
-    st = PassState(key=key, pass_index=pass_index)
+    st = PassState(key=key, pass_index=pass_index, summed=True)
     for name, stage in pass_stages(cfg):
         if name != "film":  # the techniques go straight into one image, not one each
             st = stage(scene, cfg, st)
@@ -444,6 +463,7 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
         finite = jnp.isfinite(v)
         bad = bad + jnp.sum(~finite, dtype=jnp.int32)
         img = img.at[jnp.concatenate(pix)].add(jnp.where(finite, v, 0.0))
+    bad = bad + st.bad  # the summed families' non-finite values (`_queue.masked_map`)
     zero = jnp.zeros((), jnp.int32)
     cv = zero if st.cverts is None else jnp.sum(st.cverts.alive).astype(jnp.int32)
     lv = zero if st.lverts is None else jnp.sum(st.lverts.alive).astype(jnp.int32)
@@ -457,7 +477,8 @@ def _integrate_chunks(scene, key, cfg, pass_index):
 
     def body(carry, c):
         img, bad, stats = carry
-        st = PassState(key=jax.random.fold_in(key, c), pass_index=pass_index, chunk=c)
+        st = PassState(key=jax.random.fold_in(key, c), pass_index=pass_index, chunk=c,
+                       summed=True)
         for stage in stages:
             st = stage(scene, cfg, st)
         i2, b2, s2 = _chunk_film(scene, cfg, st)
@@ -535,7 +556,7 @@ def profile_stages(scene: Scene, cfg: RenderConfig, passes: int = 3, seed: int =
     stages = [(name, _stage_program(fn, cfg)) for name, fn in pass_stages(cfg)]
 
     def one_pass(i, times):
-        st = jax.block_until_ready(PassState(key=keys[i], pass_index=i))
+        st = jax.block_until_ready(PassState(key=keys[i], pass_index=i, summed=True))
         for name, fn in stages:
             t0 = time.perf_counter()
             st = jax.block_until_ready(fn(scene, st))

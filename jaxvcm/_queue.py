@@ -48,17 +48,24 @@ def first_true(m, size: int):
                                                        mode="drop")
 
 
-def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None):
+def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None, summed=False):
     """`fn` vmapped over the items of `args` (pytree of arrays with leading item axes of
     `mask`'s shape) where `mask` holds; `fill` (pytree of scalars, like fn's output)
     elsewhere. `split`: rounds per full sweep (`round_width`); 1 = one round of every
     item. `cheap`: None, or (cheap_fn, cheap_mask): a cheaper `fn` that is valid for the
     items where cheap_mask holds; those items are queued first, and a round made of them
-    alone runs cheap_fn (a round that mixes both kinds runs `fn`, valid for every item)."""
+    alone runs cheap_fn (a round that mixes both kinds runs `fn`, valid for every item).
+
+    `summed` (a mask [J, N] of (technique, path) items, fn returning one array): the
+    results summed over J per path instead, ([N, ...] sum, number of non-finite result
+    elements): each item's non-finite elements are zeroed and counted, as the film does
+    with a technique's image. The queue then writes no [J, N, ...] buffer (`fill` 0)."""
     shape = mask.shape
     M = mask.size
     flat = jax.tree.map(lambda a: a.reshape((M,) + a.shape[len(shape):]), args)
     W = round_width(M, split)
+    if summed:
+        return _summed_map(fn, mask, flat, W)
     if W >= M:  # one round: the dense map, no gathers, no cond
         res = jax.vmap(fn)(*flat)
         m = mask.reshape(M)
@@ -105,6 +112,44 @@ def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None):
 
     out, _ = jax.lax.scan(body, out0, (jnp.arange(rounds, dtype=jnp.int32), order))
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
+
+
+def _summed_map(fn: Callable, mask, flat, W: int):
+    """`masked_map(..., summed=True)`: the items' results added into their path's row."""
+    J, N = mask.shape
+    M = mask.size
+    m = mask.reshape(M)
+
+    def clean(*a):  # one item: its non-finite elements zeroed and counted
+        r = fn(*a)
+        ok = jnp.isfinite(r)
+        return jnp.where(ok, r, jnp.zeros((), r.dtype)), jnp.sum(~ok, dtype=jnp.int32)
+
+    if W >= M:  # one round: the dense map, summed over the rows
+        r, bad = jax.vmap(clean)(*flat)
+        r = jnp.where(m.reshape((M,) + (1,) * (r.ndim - 1)), r, jnp.zeros((), r.dtype))
+        n_bad = jnp.sum(jnp.where(m, bad, 0), dtype=jnp.int32)
+        return r.reshape((J, N) + r.shape[1:]).sum(axis=0), n_bad
+    rounds = -(-M // W)
+    count = jnp.sum(mask, dtype=jnp.int32)
+    order = first_true(m, rounds * W).reshape(rounds, W)
+    vfn = jax.vmap(clean)
+    shape = jax.eval_shape(vfn, *jax.tree.map(lambda a: a[:1], flat))[0]
+    out0 = (jnp.zeros((N,) + shape.shape[1:], shape.dtype), jnp.zeros((), jnp.int32))
+
+    def work(out, idx):
+        g = jnp.minimum(idx, M - 1)
+        r, bad = vfn(*jax.tree.map(lambda a: a[g], flat))
+        lane = jnp.where(idx < M, g % N, N)  # item (j, n) -> path n; padding dropped
+        n_bad = jnp.sum(jnp.where(idx < M, bad, 0), dtype=jnp.int32)
+        return out[0].at[lane].add(r, mode="drop"), out[1] + n_bad
+
+    def body(out, x):
+        r, idx = x
+        return jax.lax.cond(r * W < count, work, lambda o, _: o, out, idx), None
+
+    out, _ = jax.lax.scan(body, out0, (jnp.arange(rounds, dtype=jnp.int32), order))
+    return out
 
 
 class Packed:
