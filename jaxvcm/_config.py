@@ -91,7 +91,9 @@ class RenderConfig:
     trace_tail:  a round of a single-direction trace (PT, light tracing) with at most
                  1/trace_tail of a round's lanes left alive runs a step that narrow (at
                  least `_subpath.TAIL_MIN` lanes, else no tail rounds: `tail_width`);
-                 1 = off. Changes the work, not the result.
+                 1 = off; 0 = auto: 8 from max_depth 3 rr_depth on (where the tail is a
+                 third of the rounds), else off (the narrow step costs ~3 s of compile).
+                 Changes the work, not the result.
     chunks:      camera and light paths of a pass are traced in this many chunks, one
                  after the other (`lax.scan`), so a pass's memory is that of 1/chunks of its
                  paths (bounded memory, `chunks_for_memory`). Chunk c has the paths
@@ -119,7 +121,7 @@ class RenderConfig:
     photon_capacity: int = 0
     mis_form: str = "explicit"
     trace_split: int = 8
-    trace_tail: int = 8
+    trace_tail: int = 0
     chunks: int = 1
 
     @property
@@ -134,7 +136,11 @@ class RenderConfig:
             raise ValueError(f"config.mis: unknown {self.mis!r}; one of {MIS_HEURISTICS}")
         if self.mis_form not in MIS_FORMS:
             raise ValueError(f"config.mis_form: unknown {self.mis_form!r}; one of {MIS_FORMS}")
-        for name in ("max_depth", "march_steps", "spp", "trace_split", "trace_tail", "chunks"):
+        if (not isinstance(self.trace_tail, int) or isinstance(self.trace_tail, bool)
+                or self.trace_tail < 0):
+            raise ValueError(f"config.trace_tail: must be a non-negative integer (0: auto), "
+                             f"got {self.trace_tail!r}")
+        for name in ("max_depth", "march_steps", "spp", "trace_split", "chunks"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")

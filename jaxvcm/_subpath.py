@@ -431,12 +431,14 @@ def tail_width(W: int, cfg: RenderConfig, single: bool) -> int | None:
     grow with the maximum depth, not with the vertices (PT on the pool at 256x256: 4 of
     31 rounds at depth 8, 12 of 41 at depth 16, holding 3914 .. 12 lanes of 8192). A
     second copy of the step, Wt wide, runs the rounds with at most Wt lanes left: PT at
-    depth 16 0.237 -> 0.228 s, for ~2 s more compile time. Only in single-direction traces
-    (PT, light tracing): in `trace_both` the copy would cost VCM's first pass its
-    15 s budget (docs/design.md, "Speed, tenth step")."""
-    if not single or cfg.trace_tail <= 1:
+    depth 16 0.237 -> 0.228 s, for ~3 s more compile time (PT's cold first pass 6.6 ->
+    9.6 s), hence by default only from max_depth 3 rr_depth on (`RenderConfig.trace_tail`
+    0), and only in single-direction traces (PT, light tracing): in `trace_both` the copy
+    would cost VCM's first pass its 15 s budget (docs/design.md, "Speed, tenth step")."""
+    tail = cfg.trace_tail or (8 if cfg.max_depth >= 3 * cfg.rr_depth else 1)
+    if not single or tail <= 1:
         return None
-    Wt = W // cfg.trace_tail
+    Wt = W // tail
     return Wt if Wt >= TAIL_MIN else None
 
 

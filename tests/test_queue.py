@@ -83,6 +83,12 @@ def test_queued_trace_runs_every_step_of_every_lane():
         img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(scene, key, cfg)
         out.append((np.asarray(img, np.float64), int(diag.camera_vertices)))
     assert 12 * 12 * 16 > 2 * MIN_ROUND
+    # the default (0, auto): tail rounds W / 8 wide from max_depth 3 rr_depth on
+    assert tail_width(8192, RenderConfig(max_depth=12), True) == 1024
+    assert tail_width(8192, RenderConfig(max_depth=11), True) is None
+    assert tail_width(8192, RenderConfig(max_depth=12), False) is None  # trace_both
+    with pytest.raises(ValueError, match="config.trace_tail"):
+        RenderConfig(trace_tail=-1)
     for o in out[1:]:
         assert o[1] == out[0][1] == 12 * 12 * 16 * 4, (out[0][1], o[1])
         np.testing.assert_allclose(o[0], out[0][0], rtol=1e-5, atol=1e-7)
