@@ -209,17 +209,15 @@ def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
 
 # ---------------------------------------------------------------- s = 0
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
-                 etas=(0.0, 0.0), parts=None, summed=False):
-    """z_j on an emitter or at infinity (sky), j = 1..D: technique (0, j + 1).
-    {label: [N, C]}; with `summed` and `parts` the family's sum per path and its count of
-    non-finite values instead (`_queue.masked_map`'s summed mode)."""
+                 etas=(0.0, 0.0), parts=None):
+    """z_j on an emitter or at infinity (sky), j = 1..D: technique (0, j + 1)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
     js = np.arange(1, D + 1)
     if parts is not None:
-        val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas, summed)
-        return val if summed else {(0, int(j) + 1): val[i] for i, j in enumerate(js)}
+        val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas)
+        return {(0, int(j) + 1): val[i] for i, j in enumerate(js)}
     z, zp = rows(cam, js), rows(cam, js - 1)  # z_j and z_{j-1}
     Le = verts.Le  # [D, N, C] for z_1..z_D
     esc = verts.escaped
@@ -242,15 +240,15 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.
 
 # ---------------------------------------------------------------- s = 1
 def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0, 0.0),
-               parts=None, summed=False):
-    """NEE from z_j, j = 1..D-1: technique (1, j + 1) (`summed`: as in `emitter_hits`)."""
+               parts=None):
+    """NEE from z_j, j = 1..D-1: technique (1, j + 1)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
     js = np.arange(1, D)
     if parts is not None:
-        val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas, summed)
-        return val if summed else {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
+        val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas)
+        return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
     if isinstance(u_nee, Uniforms):
         u_nee = u_nee.dense()
     z, zp = rows(cam, js), rows(cam, js - 1)
@@ -333,8 +331,9 @@ def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
 # ---------------------------------------------------------------- s, t >= 2
 def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e: lights.Emission,
                 etas=(0.0, 0.0), parts=None, summed=False):
-    """z_{t-1} joined to y_{s-1} for s, t >= 2, s + t - 1 <= D (`summed`: as in
-    `emitter_hits`)."""
+    """z_{t-1} joined to y_{s-1} for s, t >= 2, s + t - 1 <= D: {(s, t): [N, C]}; with
+    `summed` and `parts` the family's sum per path [N, C] and its count of non-finite
+    values instead (`_queue.masked_map`'s summed mode: no [J, N, C] buffer, J ~ D^2 / 2)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
@@ -435,7 +434,7 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
 
 
 def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
-                         verts: subpath.Vertex, parts, etas, summed=False):
+                         verts: subpath.Vertex, parts, etas):
     """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
     only the live vertices that see emission (a light, or the sky after an escape) evaluate
     the join; in the pool about one camera vertex in 200. The same arithmetic per item as
@@ -470,11 +469,11 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (D, N))
     # narrow rounds (N / 8 items): a round costs its width whatever it holds, and the hits
     # are few (the pool: ~1 in 200 camera vertices; with a sky, up to one per path)
-    return masked_map(item, ok, (ii, nn), 0.0, 8 * D, summed=summed)
+    return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
 
 
 def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, parts, js,
-                       etas, summed=False):
+                       etas):
     """Next-event estimation [J, N, C] from z_j (j = js) as one work queue over (vertex,
     lane) items: only live, non-delta camera vertices sample a light, trace the shadow ray
     and evaluate the join (in the pool about 40 % of the J x N slots). The same arithmetic
@@ -545,7 +544,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         # live NEE items (55 % in pool_sun), which then skip the shadow ray and the join
         want = want & masked_map(worth, want, (ii, nn), False, 2 * J)
     # rounds of N / 2 items (about 2.4 live NEE vertices per path in the pool)
-    return masked_map(item, want, (ii, nn), 0.0, 2 * J, summed=summed)
+    return masked_map(item, want, (ii, nn), 0.0, 2 * J)
 
 
 def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission,

@@ -49,9 +49,11 @@ class Technique(NamedTuple):
          (s = 0: any number of light vertices), or with `technique_images(merge_lengths=True)`
          of photon y_{s-1} only (s >= 2: a path of s + t - 2 segments);
     kind "gather": ppm's photon gather (s = t = 0);
-    kind "sum": a family's techniques summed per path (s = 0 emitter hits, s = 1
-         next-event estimation, s = 2 the connections; t = 0), in a pass that wants only
-         the image (`integrate`): its queue adds each item into its path's row.
+    kind "sum": the connections (s, t >= 2) summed per path (s = 2, t = 0), in a pass
+         that wants only the image (`integrate`): their queue adds each item into its
+         path's row (the D^2 / 2 techniques' [N, C] buffers were a cost per depth^2;
+         emitter hits and next-event estimation, D each, stay one value per technique:
+         summed they cost VCM's program more compile time than they saved).
     """
 
     kind: str
@@ -107,8 +109,8 @@ class PassState(eqx.Module):
     lends: Any = None
     parts: Any = None  # (light, camera) MIS partial sums, or None
     merge_lengths: bool = eqx.field(static=True, default=False)  # merges split by photon
-    # only the image is wanted (`integrate`): the queued families come summed per path
-    # ("sum" labels), with their count of non-finite values in `bad`
+    # only the image is wanted (`integrate`): the queued connections come summed per path
+    # (a "sum" label), with their count of non-finite values in `bad`
     summed: bool = eqx.field(static=True, default=False)
     bad: Any = 0
     labels: tuple[Technique, ...] = eqx.field(static=True, default=())
@@ -285,16 +287,14 @@ def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 
 # ---- [s = 0] emitter hits of the camera subpaths (ppm: in its gather)
 def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    return _add_family(st, 0, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas,
-                                                   st.parts, st.summed))
+    return _add(st, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts))
 
 
 # ---- [s = 1] next-event estimation at camera vertices
 def next_event(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, D, dt = _dims(scene, cfg)
     u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt)  # hashed where used
-    return _add_family(st, 1, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas,
-                                                 st.parts, st.summed))
+    return _add(st, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas, st.parts))
 
 
 # ---- [t = 1] light tracing: light vertices splatted onto the film through the pinhole
