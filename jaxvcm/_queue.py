@@ -40,7 +40,7 @@ def first_true(m, size: int):
     """Indices of the first `size` True items of a flat boolean mask, in order, padded with
     m.size: `jnp.nonzero(m, size=size, fill_value=m.size)[0]`, by one running count and one
     scatter (`nonzero`: two running counts and a scatter-add). On the 2-core machine 7.5 ->
-    5.4 ms for a million items, and in VCM's program 151 fewer kernels (1159 -> 1008) and
+    5.4 ms for a million items, and VCM's program (256x256) 1159 -> 1008 kernels and
     ~1 s less compile time (docs/design.md, "Speed, tenth step")."""
     M = m.shape[0]
     pos = jnp.where(m, running_count(m) - 1, size)
