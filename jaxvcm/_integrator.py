@@ -30,6 +30,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from . import _camera as camera
 from . import _connect as connect
+from . import _inline as inline
 from . import _lights as lights
 from . import _merge as merge
 from . import _mis_recursive as mis_recursive
@@ -53,7 +54,9 @@ class Technique(NamedTuple):
          that wants only the image (`integrate`): their queue adds each item into its
          path's row (the D^2 / 2 techniques' [N, C] buffers were a cost per depth^2;
          emitter hits and next-event estimation, D each, stay one value per technique:
-         summed they cost VCM's program more compile time than they saved).
+         summed they cost VCM's program more compile time than they saved); and PT's
+         emitter hits and next-event estimation summed per path inside the camera trace
+         (s = 0, t = 0; `_inline`).
     """
 
     kind: str
@@ -113,6 +116,7 @@ class PassState(eqx.Module):
     # (a "sum" label), with their count of non-finite values in `bad`
     summed: bool = eqx.field(static=True, default=False)
     bad: Any = 0
+    n_cverts: Any = None  # live camera vertices, when no records were kept (`_inline`)
     labels: tuple[Technique, ...] = eqx.field(static=True, default=())
     values: tuple = ()  # per label: [N, C] per camera path, or a (pixel, value) splat
     merged: Any = None  # `_merge.Merged`: overflow flags, candidates and photons needed
@@ -266,6 +270,20 @@ def subpaths(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
                                cam_start=None, cam_u=None, light_start=None, light_u=None)
 
 
+# ---- PT, image only: camera subpaths with the emitter hits and next-event estimation
+#      evaluated at each vertex inside the trace (`_inline`): no records, no MIS tables
+def camera_paths_inline(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    _, N, D, dt = _dims(scene, cfg)
+    # the light samples' uniforms: the table `next_event` draws, row j - 1 for z_j
+    u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt) if D >= 2 else None
+    est = functools.partial(inline.estimate, scene, cfg, inline.uniforms(u_nee))
+    val, bad, n_v = subpath.trace(scene, cfg, True, inline.start(st.cam_start), st.cam_u, D,
+                                  estimate=est)
+    st = _add(st, {Technique("sum", 0, 0): val})
+    return dataclasses.replace(st, bad=st.bad + bad, n_cverts=n_v, cam_start=None,
+                               cam_u=None)
+
+
 # ---- MIS partial sums of each subpath (O(D) per subpath, then O(1) per technique)
 def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, _, dt = _dims(scene, cfg)
@@ -356,7 +374,8 @@ def film(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
             img = val.reshape(cfg.spp, H, W, C).mean(axis=0)
         images.append(img)
     zero = jnp.zeros((), jnp.int32)
-    camera_vertices = zero if st.cverts is None else jnp.sum(st.cverts.alive)
+    camera_vertices = (jnp.sum(st.cverts.alive) if st.cverts is not None
+                       else zero if st.n_cverts is None else st.n_cverts)
     light_vertices = zero if st.lverts is None else jnp.sum(st.lverts.alive)
     stats = PassStats(camera_vertices.astype(jnp.int32), light_vertices.astype(jnp.int32),
                       *_merge_stats(st))
@@ -364,14 +383,20 @@ def film(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
                                stats=stats)
 
 
-def pass_stages(cfg: RenderConfig) -> list[tuple[str, Stage]]:
+def pass_stages(cfg: RenderConfig, summed: bool = False) -> list[tuple[str, Stage]]:
     """The named stages of `cfg`'s pass, in the order they run. The techniques' order is
     the film's (and `integrate`'s summation) order, so ppm's gather comes before the
-    light-side techniques and bpm / vcm's merging after them."""
+    light-side techniques and bpm / vcm's merging after them. `summed`: the pass wants only
+    the image (`integrate`); PT then evaluates its techniques inside the camera trace
+    (`_inline`: one stage for the subpaths, emitter hits and next-event estimation)."""
     tech = cfg.techniques
     D = cfg.max_depth
     cam, light = tech.camera_paths, tech.light_paths
     stages: list[tuple[str, Stage]] = [("setup", setup)]
+    if summed and inline.enabled(cfg):
+        return stages + [("camera rays", camera_rays),
+                         ("subpaths, emitter hits, next-event estimation",
+                          camera_paths_inline), ("film", film)]
     if cam:
         stages.append(("camera rays", camera_rays))
     if light:
@@ -421,7 +446,7 @@ def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
     if cfg.chunks > 1:
         return _integrate_chunks(scene, key, cfg, pass_index)
     st = PassState(key=key, pass_index=pass_index, summed=True)
-    for name, stage in pass_stages(cfg):
+    for name, stage in pass_stages(cfg, True):
         if name != "film":  # the techniques go straight into one image, not one each
             st = stage(scene, cfg, st)
     img, bad, stats = _chunk_film(scene, cfg, st)
@@ -465,7 +490,8 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
         img = img.at[jnp.concatenate(pix)].add(jnp.where(finite, v, 0.0))
     bad = bad + st.bad  # the summed families' non-finite values (`_queue.masked_map`)
     zero = jnp.zeros((), jnp.int32)
-    cv = zero if st.cverts is None else jnp.sum(st.cverts.alive).astype(jnp.int32)
+    cv = (jnp.sum(st.cverts.alive).astype(jnp.int32) if st.cverts is not None
+          else zero if st.n_cverts is None else st.n_cverts)
     lv = zero if st.lverts is None else jnp.sum(st.lverts.alive).astype(jnp.int32)
     return img, bad, PassStats(cv, lv, *_merge_stats(st))
 
@@ -473,7 +499,7 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
 def _integrate_chunks(scene, key, cfg, pass_index):
     cam = scene.camera
     H, W, C = cam.height, cam.width, scene.channels
-    stages = [f for name, f in pass_stages(cfg) if name != "film"]
+    stages = [f for name, f in pass_stages(cfg, True) if name != "film"]
 
     def body(carry, c):
         img, bad, stats = carry
@@ -553,7 +579,7 @@ def profile_stages(scene: Scene, cfg: RenderConfig, passes: int = 3, seed: int =
         raise ValueError(f"passes: must be >= 1, got {passes}")
     keys = [jax.random.fold_in(jax.random.key(seed), i) for i in range(passes)]  # pass_key
     cfg = _with_room(scene, cfg, keys)
-    stages = [(name, _stage_program(fn, cfg)) for name, fn in pass_stages(cfg)]
+    stages = [(name, _stage_program(fn, cfg)) for name, fn in pass_stages(cfg, True)]
 
     def one_pass(i, times):
         st = jax.block_until_ready(PassState(key=keys[i], pass_index=i, summed=True))

@@ -333,3 +333,35 @@ def join(cfg: RenderConfig, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s
         own, own_ok = own_conn, conn
     total = _lae(own_conn, SL, SC)
     return jnp.where(own_ok, jnp.exp(own - total), jnp.zeros((), dt))
+
+
+# ---------------------------------------------------------------- PT: two techniques
+def pt_weight(cfg: RenderConfig, lp_own, la_other, other_ok, conn):
+    """`join`'s weight when the algorithm has only PT's techniques (s = 0 emitter hits,
+    s = 1 next-event estimation; no light subpath, no connections, no merging, `_config`
+    "pt"), for the technique at camera vertex z_j, from the two pdfs of its last vertex:
+
+        w = p_own^beta / (p_own^beta + [other_ok] p_other^beta)
+          = exp(-logaddexp(0, beta (log p_other - log p_own))),
+
+    s = 0 (z_j on an emitter): p_own = B(z_j) rr(j - 1, q_{j-1}), the camera's pdf of z_j
+          with its roulette (`subpath`'s local pdf: lp_own is its `_log_pos(., 0)`);
+          p_other = A(z_j), the light's pdf of the point (`la_other`, `_log_pos(., -inf)`);
+          other_ok: next-event estimation from z_{j-1} could have made it (j >= 2, z_{j-1}
+          not delta);
+    s = 1 (light sample y_0 from z_j): p_own = A(y_0) (`_log_pos(., 0)`); p_other =
+          B(y_0) rr(j, q_j), the camera continuing from z_j to y_0; other_ok: the emitter
+          hit exists (the light is not delta);
+    `conn`: the technique itself is enabled and no pdf of the path is zero (`join`'s
+    `conn & positive`); 0 where it is not.
+
+    Derivation from `join` (with every camera-side u-term -inf: PT's camera vertices start
+    no light tracing, connection or merge, so the camera table is -inf and uc2 = -inf):
+    s = 0: SL = -inf (no light side), SC = uc1 = [vc_s1] beta (la_s - lp1), total =
+    logaddexp(0, SC); s = 1: SC = -inf (uc1: no connection s + 2), SL = u1 = [vc1] beta
+    (lb1 - lp1) (no second light vertex: d2 = 0, u2 = table = -inf), total = logaddexp(0,
+    SL). The same operations in the same order (logaddexp with -inf is exact), so the
+    weight equals `join_weight`'s to the bit (tests/test_mis_partial.py)."""
+    beta = 2.0 if cfg.mis == "power" else 1.0
+    x = jnp.where(other_ok, beta * (la_other - lp_own), NEG)
+    return jnp.where(conn, jnp.exp(0.0 - jnp.logaddexp(0.0, x)), jnp.zeros((), lp_own.dtype))

@@ -98,6 +98,7 @@ class WalkState(NamedTuple):
     prev_conv: Array  # p_prev's reverse pdf needs no area conversion (camera, infinite light)
     dispersed: Array  # beta went through a dispersive refraction (hero channel only, x C)
     mis: Any = None  # `_mis_recursive.Carry` (mis_form "recursive"), else None
+    pt: Any = None  # `_inline.Carry` (PT's techniques in the trace), else None
 
 
 def rr(index, q, cfg: RenderConfig):
@@ -307,7 +308,7 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
 
 
 def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,
-          limit=None, mis_ctx=None, v0: Vertex | None = None):
+          limit=None, mis_ctx=None, v0: Vertex | None = None, estimate=None):
     """Trace L subpaths from batched start states; u: [n_steps, L, N_UNIFORMS], an array or
     a `_uniforms.Uniforms` table (hashed per round for the round's lanes).
     `radiance`: True (camera subpaths), False (light subpaths) or an [L] per-lane flag
@@ -330,7 +331,14 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     ([n_steps + 1, L]; vertex k in row k + 1) and the reverse pdf p(v_0 | v_1) written
     into row 0 for the light lanes (not radiance); camera lanes keep v0's. The records
     are then the subpaths' `PathEnds` as they are (`ends`): no copy of every field to
-    prepend the start vertex (on the pool at 256x256 that copy was ~10 % of PT's pass)."""
+    prepend the start vertex (on the pool at 256x256 that copy was ~10 % of PT's pass).
+
+    `estimate` (`_inline.estimate` bound to its scene, config and uniforms): evaluate
+    techniques at each vertex as a round makes it, `estimate(kg, g, live, s, s_new, v)
+    -> (s_new, values [W, C], non-finite count, live vertices)` for the round's lanes g
+    (`live`: not padding) and their states before / after the step. The trace then keeps
+    no records and returns (the values summed per lane [L, C], the non-finite count, the
+    number of live vertices)."""
     static = isinstance(radiance, bool)
     L = s0.alive.shape[0]
     if v0 is not None:
@@ -344,6 +352,8 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     # out before their last steps, e.g. L = 2304 lanes, W = 1024: lanes 2111.. stopped at
     # depth 2 and a furnace came out 3.7 % dark.) Rounds with no live lane are skipped.
     rounds = (n_steps * L) // W + n_steps
+    if W >= L and estimate is not None:
+        return _trace_all(scene, cfg, radiance, s0, u, n_steps, mis_ctx, estimate)
     if W >= L:
         verts, rev0 = _trace_all(scene, cfg, radiance, s0, u, n_steps, mis_ctx)
         if v0 is None:
@@ -366,9 +376,10 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     alive_col = state_pack.column(_leaf(state_pack, "alive"))[1]
     rev0 = jnp.ones((L,), s0.pdf_w.dtype)
     k0 = jnp.zeros((L,), jnp.int32)  # vertices recorded so far, per lane
+    keep = estimate is None  # the records are kept (else the estimates' sums)
 
     def advance(carry, width=W):
-        S, k, V, rev0 = carry
+        S, k, V, rev0, E = carry
         lane = first_true(S["bool"][:, alive_col] & (k < limit), width)
         g = jnp.minimum(lane, L - 1)  # padding lanes compute lane L-1's step; dropped below
         kg = jnp.minimum(k[g], n_steps - 1)
@@ -380,8 +391,13 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         # this round's uniforms: hashed for its lanes alone (`_uniforms`), or gathered
         ug = u.rows_at(kg, g, lane[0] < L) if isinstance(u, Uniforms) else u[kg, g]
         s_new, v = vstep(scene, cfg, mode, kg, s_g, ug, tw)
+        if not keep:  # the techniques at the new vertices, added into their lanes
+            s_new, c, n_bad, n_v = estimate(kg, g, lane < L, s_g, s_new, v)
+            E = (E[0].at[lane].add(c, mode="drop"), E[1] + n_bad, E[2] + n_v)
         S = {d: S[d].at[lane].set(x, mode="drop") for d, x in state_pack.pack(s_new).items()}
         k = k.at[lane].add(1, mode="drop")
+        if not keep:
+            return S, k, V, rev0, E
         # v_k's record at (k, lane); the pdf_rev it computed belongs to v_{k-1} (y_0 / z_0
         # for k = 0)
         row = jnp.where(lane < L, kg + off, n_rows)
@@ -392,7 +408,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         d, c = rev_col
         V[d] = V[d].at[prev, lane, c].set(v.pdf_rev, mode="drop")
         rev0 = rev0.at[jnp.where(kg == 0, lane, L)].set(v.pdf_rev, mode="drop")
-        return S, k, V, rev0
+        return S, k, V, rev0, E
 
     Wt = tail_width(W, cfg, static)
 
@@ -405,17 +421,24 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
         return jax.lax.scan(body, carry, None, length=n_rounds)[0]
 
     V0 = {d: jnp.broadcast_to(a[None], (n_rows,) + a.shape) for d, a in rec_pack.arrays.items()}
-    if v0 is not None:  # row 0: the start vertices
+    if v0 is not None and keep:  # row 0: the start vertices
         P0 = rec_pack.pack(v0)
         V0 = {d: a.at[0].set(P0[d]) for d, a in V0.items()}
-    carry = (state_pack.arrays, k0, V0, rev0)
+    E0 = None
+    if not keep:  # no records: the estimates' sums instead
+        V0 = rev0 = None
+        zero = jnp.zeros((), jnp.int32)
+        E0 = (jnp.zeros((L, scene.channels), s0.beta.dtype), zero, zero)
+    carry = (state_pack.arrays, k0, V0, rev0, E0)
     if Wt is None:
         carry = sweep(carry, W, lambda n: n > 0, rounds)
     else:  # the tail: once at most Wt lanes are left (it stays so: lanes only die), each
         # round advances all of them, at most n_steps rounds, a step Wt wide
         carry = sweep(carry, W, lambda n: n > Wt, rounds)
         carry = sweep(carry, Wt, lambda n: n > 0, n_steps)
-    _, _, V, rev0 = carry
+    _, _, V, rev0, E = carry
+    if not keep:
+        return E
     if v0 is not None:  # the records, and the same packed (`VertexTable`)
         return rec_pack.unpack(V), (rec_pack, V)
     return rec_pack.unpack(V), rev0
@@ -443,13 +466,31 @@ def tail_width(W: int, cfg: RenderConfig, single: bool) -> int | None:
 
 
 def _trace_all(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: int,
-               mis_ctx=None) -> tuple[Vertex, Array]:
+               mis_ctx=None, estimate=None):
     """One round per step (every lane every step, dead or alive): the plain loop over
     depths, without the queue's gathers and scatters. Dead lanes' records hold whatever
-    their masked-out steps computed (and light lanes of `trace_both` run n_cam steps)."""
+    their masked-out steps computed (and light lanes of `trace_both` run n_cam steps).
+    With `estimate` (`trace`'s): its sums instead of records."""
     static = isinstance(radiance, bool)
     vstep = jax.vmap(lambda sc, c, r, i, st, ui: step(sc, c, r, i, st, ui, None, mis_ctx),
                      in_axes=(None, None, None if static else 0, None, 0, 0))
+    if estimate is not None:
+        L = s0.alive.shape[0]
+        lanes, live = jnp.arange(L, dtype=jnp.int32), jnp.ones((L,), bool)
+
+        def body_e(carry, x):
+            st, (acc, bad, n) = carry
+            i, ui = x
+            s_new, v = vstep(scene, cfg, radiance, i, st, ui)
+            s_new, c, n_bad, n_v = estimate(jnp.full((L,), i), lanes, live, st, s_new, v)
+            return (s_new, (acc + c, bad + n_bad, n + n_v)), None
+
+        uu = u.dense() if isinstance(u, Uniforms) else u
+        zero = jnp.zeros((), jnp.int32)
+        E0 = (jnp.zeros((L, scene.channels), s0.beta.dtype), zero, zero)
+        (_, E), _ = jax.lax.scan(body_e, (s0, E0),
+                                 (jnp.arange(n_steps, dtype=jnp.int32), uu[:n_steps]))
+        return E
 
     def body(s, x):
         i, ui = x

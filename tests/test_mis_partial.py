@@ -103,6 +103,9 @@ def _both(cfg, st_, tt, lig, cam, joins, dl, inf, etas, merge):
         Lp = MP.light(cfg, lp.A, lp.B, lp.q, lp.delta, lp.medium, dl, etas)
         Cp = MP.camera(cfg, cp.A, cp.B, cp.q, cp.delta, cp.medium, log_n, etas)
         new = MP.join_weight(cfg, s, t, Lp, Cp, j[0], j[1], j[2], j[3], dl, inf, log_n, merge)
+        if cfg.algorithm == "pt":  # PT's closed form (`pt_weight`, the renderer's `_inline`)
+            pt = _pt_closed_form(cfg, s, t, lp, cp, j, dl)  # for PT's techniques
+            return old, new, jnp.where((s <= 1) & (t >= 2), pt, new)
         if lp.A.shape[0] != 1:
             return old, new, new
         # a lone light vertex (next-event estimation): its entries in closed form, as the
@@ -115,6 +118,27 @@ def _both(cfg, st_, tt, lig, cam, joins, dl, inf, etas, merge):
     return jax.vmap(one)(st_, tt, LP, CP, joins)
 
 
+def _pt_closed_form(cfg, s, t, lp, cp, j, dl):
+    """`MP.pt_weight` from what the camera trace knows at z_{t-1} (`_inline.estimate`):
+    the camera's local pdfs z_0..z_{t-1} with their roulette, their zero flag, the delta
+    flags of z_{t-1} and z_{t-2}; s = 0 reads A(z_{t-1}) = j[0], s = 1 the light sample's
+    A(y_0) = lp.A[0] and B(y_0) = j[2]."""
+    tech = cfg.techniques
+    m = jnp.arange(cp.B.shape[0], dtype=jnp.int32)
+    q_prev = jnp.concatenate([jnp.ones_like(cp.q[:1]), cp.q[:-1]])
+    local = cp.B * jnp.where(m >= 1, MP._rr(m - 1, q_prev, cfg.rr_depth), 1.0)
+    zero = jnp.any((m < t) & ~(local > 0))
+    jz = t - 1  # z_j, the vertex of the technique
+    lp_z = MP._log_pos(local[jz], 0.0)
+    hit = MP.pt_weight(cfg, lp_z, MP._log_pos(j[0], MP.NEG),
+                       tech.nee & (jz >= 2) & ~cp.delta[jnp.maximum(jz - 1, 0)],
+                       tech.emitter_hits & ~dl & ~zero)
+    other = MP._log_pos(j[2] * MP._rr(jz, cp.q[jz], cfg.rr_depth), MP.NEG)
+    nee = MP.pt_weight(cfg, MP._log_pos(lp.A[0], 0.0), other, tech.emitter_hits & ~dl,
+                       tech.nee & ~cp.delta[jz] & (lp.A[0] > 0) & ~zero)
+    return jnp.where(s == 0, hit, nee)
+
+
 def _weights(cfg, dtype, st_, tt, lig, cam, joins, n, dl, inf, etas, merge):
     """(assembled, partial sums) weights of the batch; for a one-vertex light side the
     closed-form start entries (`start_entries`) must equal the partial sums exactly."""
@@ -123,8 +147,15 @@ def _weights(cfg, dtype, st_, tt, lig, cam, joins, n, dl, inf, etas, merge):
     cam = (f(cam[0]), f(cam[1]), f(cam[2]), jnp.asarray(cam[3]), jnp.asarray(cam[4]))
     old, new, start = _both(cfg, jnp.asarray(st_), jnp.asarray(tt), lig, cam, f(joins),
                             jnp.asarray(dl), jnp.asarray(inf), (f(etas[0]), f(etas[1])), merge)
-    np.testing.assert_array_equal(np.asarray(start)[:n], np.asarray(new)[:n],
-                                  err_msg="start_entries differ from the one-vertex partials")
+    # a one-vertex light side: `start_entries` must equal the partial sums exactly; PT: its
+    # closed form (`pt_weight`) must equal the partial sums to round-off (s <= 1, t >= 2:
+    # the techniques PT has)
+    np.testing.assert_allclose(np.asarray(start)[:n], np.asarray(new)[:n], rtol=1e-6,
+                               atol=0 if cfg.algorithm != "pt" else 1e-7,
+                               err_msg="closed form differs from the partial sums")
+    if cfg.algorithm != "pt":
+        np.testing.assert_array_equal(np.asarray(start)[:n], np.asarray(new)[:n],
+                                      err_msg="start_entries differ from the one-vertex partials")
     return np.asarray(old)[:n], np.asarray(new)[:n]
 
 
