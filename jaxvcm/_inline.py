@@ -40,7 +40,7 @@ from ._queue import masked_map
 from ._scene import DELTA_LIGHTS, Scene
 from ._uniforms import Uniforms
 
-NEE_SPLIT = 4  # rounds per sweep of a trace round's shadow-ray queue
+NEE_SPLIT = 8  # rounds per sweep of a trace round's shadow-ray queue
 
 
 class Carry(NamedTuple):
