@@ -82,7 +82,8 @@ PROFILE_DEFAULT_ALGORITHMS = ("pt", "bdpt", "vcm")
 PROFILE_DEFAULT_SIZE = 256
 PROFILE_TAG = "stage-profile"
 # row order of the profile tables (`jaxvcm.profile_stages` names; others go before the sums)
-PROFILE_STAGES = ("setup", "camera rays", "light emission", "subpaths", "mis partials",
+PROFILE_STAGES = ("setup", "camera rays", "light emission", "subpaths",
+                  "subpaths, emitter hits, next-event estimation", "mis partials",
                   "emitter hits", "next-event estimation", "light tracing", "connections",
                   "merging", "film")
 _TAG_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
@@ -778,12 +779,14 @@ def profile_markdown(res: dict, machine_line: str) -> str:
          f"- command: `{res['command']}`",
          f"- max depth {res['max_depth']}, seed {res['seed']}; median wall seconds over "
          f"{res['passes']} passes (keys `pass_key(seed, i)`) of `jaxvcm.profile_stages`: "
-         "each stage of the pass (`technique_images`) jitted on its own, its inputs "
+         "each stage of the pass (`integrate`'s) jitted on its own, its inputs "
          "computed by the earlier stages and waited for before its clock starts, every "
          "program compiled and run once before timing. *whole pass*: the usual single-jit "
          "pass on the same keys. Separate programs cannot fuse across stages, so their sum "
          "is usually more than the whole pass. `subpaths` is the trace (camera and light "
-         "subpaths in one trace when both run) with the records' start vertices; `merging` "
+         "subpaths in one trace when both run) with the records' start vertices; PT "
+         "evaluates its emitter hits and next-event estimation inside its trace (one "
+         "stage, no records: `_inline`); `merging` "
          "is the hash-grid build plus the gather (ppm: photon gather); `–`: the algorithm "
          "has no such stage.", ""]
     for row in res["scenes"]:
