@@ -12,7 +12,9 @@ The pass is a straight line of named stages `stage(scene, cfg, state) -> state` 
     grid over light vertices, gather at camera vertices (ppm / bpm / vcm) -> film: every
     technique's image
 `technique_images` composes them inside the caller's jit; `profile_stages` jits and times
-each on its own.
+each on its own. A PT pass that wants only its image (`integrate`, explicit MIS form)
+runs setup -> camera rays -> one trace that evaluates the emitter hits and next-event
+estimation at each vertex as it is made (`_inline`; no records) -> film.
 """
 
 from __future__ import annotations
