@@ -65,3 +65,39 @@ def test_inline_pt_equals_the_recorded_techniques(name, size):
     assert err <= 1e-5 * scale, f"max |inline - recorded| {err:.3g} of {scale:.3g}"
     assert int(bad) == 0
     assert int(stats.camera_vertices) == int(stats_rec.camera_vertices) > size * size
+
+
+def test_inline_pt_gradient_equals_the_recorded_route():
+    # Same key, same samples: the derivative of the pass w.r.t. the water's coefficients
+    # flows through the same estimator weights on both routes (sampling detached), so the
+    # inline route's gradient (through the trace's per-lane sums) must equal the recorded
+    # route's (through the records and the technique families) to round-off. (Against
+    # finite differences, in expectation: test_gradients.py, the same image size.)
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    scene = jaxvcm.load_scene("scenes/pool_sky.toml", width=48, height=48)
+    cfg = RenderConfig(algorithm="pt", max_depth=5, rr_depth=2)
+    key = jax.random.key(5)
+    sa0 = scene.water.sigma_a
+    ss0 = scene.water.sigma_s + jnp.asarray([0.3, 0.2, 0.1], sa0.dtype)
+    w = jnp.asarray([1.0, 2.0, 3.0], sa0.dtype)
+
+    def with_water(sa, ss):
+        return eqx.tree_at(lambda s: (s.water.sigma_a, s.water.sigma_s), scene, (sa, ss))
+
+    def inline_route(sa, ss):
+        return jnp.sum(jnp.mean(integrate(with_water(sa, ss), key, cfg)[0], axis=(0, 1)) * w)
+
+    def recorded_route(sa, ss):
+        tech, _ = technique_images(with_water(sa, ss), key, cfg)
+        return jnp.sum(jnp.mean(jnp.sum(tech.images, axis=0), axis=(0, 1)) * w)
+
+    g_in, g_rec = jax.jit(lambda sa, ss: (jax.grad(inline_route, argnums=(0, 1))(sa, ss),
+                                          jax.grad(recorded_route, argnums=(0, 1))(sa, ss)))(
+        sa0, ss0)
+    for name, a, b in zip(("sigma_a", "sigma_s"), g_in, g_rec):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        scale = float(np.max(np.abs(b)))
+        assert scale > 0 and np.all(np.isfinite(a)), (name, a, b)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-5 * scale, err_msg=name)
