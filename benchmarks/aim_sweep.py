@@ -3,7 +3,7 @@ camera (3 m above the centre, looking straight down, 2 degree field of view, 8 x
 pixels), purely absorbing water 1.2 m deep, black walls, the sun 14 degrees from the
 zenith. The camera sees only the refracted sun on the floor (light -> surface -> floor ->
 surface -> camera: merging alone can render it), whose value is known in closed form
-(tests/test_merge.py: E[L] = T0 / eta^2 e^{-sigma_a d} L_f, L_f = a / pi E cos_i T(i)
+(tests/merge/test_merge.py: E[L] = T0 / eta^2 e^{-sigma_a d} L_f, L_f = a / pi E cos_i T(i)
 e^{-sigma_a d / cos_t}; max depth 4 keeps only that path). VCM and PPM render it for the
 same wall time in two modes:
 

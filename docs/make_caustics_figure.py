@@ -1,5 +1,5 @@
 """docs/caustics_reference.png: the sun caustics of scenes/pool_sun.toml (purely absorbing
-water, black walls; the test scenes of tests/test_caustics.py at a larger size) rendered
+water, black walls; the test scenes of tests/transport/test_caustics.py at a larger size) rendered
 by VCM and BDPT against the float64 NumPy ray-mapping reference (tests/_caustic_ref.py),
 seen from under the water and from above, plus the tile error of VCM vs passes.
 
@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 import jaxvcm  # noqa: E402
 from jaxvcm import RenderConfig  # noqa: E402
 from tests import _caustic_ref as R  # noqa: E402
-from tests import test_caustics as TC  # noqa: E402
+from tests.transport import test_caustics as TC  # noqa: E402
 
 
 def rel_rms(img_tiles, ref_tiles):

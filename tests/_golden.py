@@ -5,7 +5,7 @@ renderer's behaviour unchanged.
 pass with hero dispersion) and one water fit, all through the public API with fixed keys.
 `python -m tests._golden` records them; they were recorded on commit 4dc2ea4 (the tree
 before the re-layout: `git worktree add /tmp/old 4dc2ea4`, then run it there).
-`python -m tests._golden` writes them to `tests/data/golden.npz`; `tests/test_golden.py`
+`python -m tests._golden` writes them to `tests/data/golden.npz`; `tests/transport/test_golden.py`
 recomputes them and compares. They were recorded before the package was re-laid out
 (issue: architecture), so every later change must reproduce them or explain why not.
 Changed since: `bdpt_pool` re-recorded on 2026-12-05 (issue 12) when the pdfs after a delta
@@ -46,17 +46,17 @@ def _medium_furnace():
 # same compiled program as an assertion test elsewhere in the suite (named in the comment),
 # so the persistent compilation cache serves both and this check costs the suite little.
 RENDERS = {
-    # tests/test_hard_cases.py::test_render_pass_vmaps_over_keys_and_jits
+    # tests/geometry/test_hard_cases.py::test_render_pass_vmaps_over_keys_and_jits
     "pt_pool": (lambda: _scene("pool", 8), dict(algorithm="pt", max_depth=3), (7, 0), "jit"),
-    # tests/test_bidir.py::test_technique_images_sum_to_the_bdpt_image
+    # tests/transport/test_bidir.py::test_technique_images_sum_to_the_bdpt_image
     "bdpt_pool": (lambda: _scene("pool", 12), dict(algorithm="bdpt", max_depth=5), (7, 1),
                   "jit"),
-    # tests/test_merge.py::test_merging_extreme_radii_are_finite[0.5-vcm] / [0.5-ppm]
+    # tests/merge/test_merge.py::test_merging_extreme_radii_are_finite[0.5-vcm] / [0.5-ppm]
     "vcm_pool_sun": (lambda: _scene("pool_sun", 8), dict(algorithm="vcm", max_depth=4,
                                                          radius=0.5), (7, 3), "host"),
     "ppm_pool_sun": (lambda: _scene("pool_sun", 8), dict(algorithm="ppm", max_depth=4,
                                                          radius=0.5), (7, 2), "host"),
-    # tests/test_mis_recursive.py::test_recursive_render_equals_explicit[vcm]
+    # tests/mis/test_mis_recursive.py::test_recursive_render_equals_explicit[vcm]
     "vcm_medium_furnace": (_medium_furnace, dict(algorithm="vcm", max_depth=3, radius=0.1),
                            (5, 0), "host"),
     "vcm_recursive_medium_furnace": (_medium_furnace, dict(algorithm="vcm", max_depth=3,

@@ -1,4 +1,4 @@
-"""Child process of tests/test_snapshots.py: writes snapshot sets OUT.exr/.png/.json in a
+"""Child process of tests/io/test_snapshots.py: writes snapshot sets OUT.exr/.png/.json in a
 loop (image value = pass count = the record's "passes"), as a render's snapshots do.
 
     python -m tests._snapshot_writer OUT START [KILL_AFTER]

@@ -11,7 +11,7 @@ import os
 # times at 16x16-ish sizes): XLA's CPU backend at LLVM optimisation level 0 compiles them
 # about 25 % faster, and its code is slower only where a test runs many large passes. The
 # arithmetic is the same IEEE arithmetic (no fast-math either way): the fixed-key renders of
-# tests/test_golden.py, recorded at the default level, still agree to float32 round-off.
+# tests/transport/test_golden.py, recorded at the default level, still agree to float32 round-off.
 # Renders outside the tests keep the default level (docs/design.md: level 0 makes passes
 # 2-3x slower). Set before jax is imported; subprocesses (the CLI tests) inherit it.
 _flag = "--xla_backend_optimization_level=0"

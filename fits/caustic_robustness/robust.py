@@ -31,7 +31,7 @@ results (result.json, NOTES.md).
 
 Robust weights are not a cure for this drift: when per-pixel noise is Poisson-like there
 are no outliers to reject, and when there are, rejecting them leaves the bulk of a skewed
-estimator, which lies below its mean (tests/test_fit_robust.py). Average, or decorrelate.
+estimator, which lies below its mean (tests/fit/test_fit_robust.py). Average, or decorrelate.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 For NON-scattering water of attenuation sigma(lambda) the renderer's floor colour is exactly
 the quadrature in targets.py (sky refracted in, all floor-surface round trips, camera path
-exp(-sigma h)); tests/test_spectral.py checks the renderer against it (dE2000 0.14). With
+exp(-sigma h)); tests/transport/test_spectral.py checks the renderer against it (dE2000 0.14). With
 particle scattering we approximate sigma = a + b_b (the HG phase with g = 0.9
 back-scatters 2.3% of b_p; forward-scattered light is counted as unscattered). A bounded
 least-squares fit (scipy, trust-region reflective, log-space bounds) in CIELAB of the

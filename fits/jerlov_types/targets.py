@@ -21,7 +21,7 @@ spectrum is D65 with luminance Y = 1):
    scene has that too, so the target includes it: the water is replaced, per wavelength and
    depth, by the non-scattering water of attenuation s(lambda, d) that gives the same
    E_d(d) / E_d(0-) = exp(-K_d d) for this light field (s ~ mu_d K_d, an estimate of a + b_b),
-   and the floor radiance is the 1-D quadrature of tests/test_spectral.sky_floor_radiance
+   and the floor radiance is the 1-D quadrature of tests/transport/test_spectral.sky_floor_radiance
    with all round trips: L_f = (1 / pi) E_d(d) / (1 - rho), rho = (1 / pi) 2 pi [int_0^theta_c
    R e^(-2 s d / cos) cos sin + int_theta_c^(pi/2) e^(-2 s d / cos) cos sin]. `round_trips=0`
    gives the issue's simple model L_f = (1 / pi) E_d(0-) exp(-K_d d).
@@ -29,7 +29,7 @@ spectrum is D65 with luminance Y = 1):
    radiance from a uniform Lambertian floor loses ~a + b_b per metre (forward scattering
    from the neighbouring floor refills the beam), not the diffuse K_d = (a + b_b) / mu_d.
    So the whole target is the colour of that equivalent non-scattering water, which the
-   renderer reproduces exactly (tests/test_spectral.py, dE2000 0.14). `camera="kd"` gives
+   renderer reproduces exactly (tests/transport/test_spectral.py, dE2000 0.14). `camera="kd"` gives
    the first version's exp(-K_d h) (result.json variants, NOTES.md).
 6. XYZ = colour.sd_to_XYZ(L on the Pope & Fry grid 380..725 nm, CIE 1931 2 deg, D65) / 100,
    i.e. Y relative to the sky's Y = 1 (the same absolute scale as the renderer's film).

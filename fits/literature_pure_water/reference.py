@@ -15,7 +15,7 @@ index for all wavelengths, as the renderer's default):
 surface seen from below; the sky's radiance 1 is refracted in with the n^2 radiance gain;
 light going back up is reflected down by the surface, totally beyond theta_c, and the
 white floor re-reflects it: a geometric series). This is the formula of
-tests/test_spectral.py::sky_floor_radiance with the series summed to infinity (the tests
+tests/transport/test_spectral.py::sky_floor_radiance with the series summed to infinity (the tests
 truncate it to match a renderer's max_depth), vectorised with 400-point Gauss-Legendre
 rules.
 
