@@ -57,7 +57,7 @@ def _one(scene_path, alg, size, depth, chunks, passes, log):
     from jaxvcm import pass_key, render_pass
 
     scene = jaxvcm.load_scene(scene_path, width=size, height=size)
-    cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=depth, chunks=chunks)
+    cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=depth).tuned(chunks=chunks)
     t0 = time.perf_counter()
     exe = jax.jit(render_pass, static_argnums=2).lower(scene, pass_key(0, 0), cfg, 0).compile()
     compile_s = time.perf_counter() - t0

@@ -159,7 +159,7 @@ def equal_time_render(scene, config, seed: int, budget: float) -> dict:
             break
     return {"image": acc / i, "passes": i, "seconds": t, "warmup_s": warm,
             "camera_paths": cam, "light_paths": light, "paths_per_s": (cam + light) / t,
-            "nonfinite": nonfinite, "merge_capacity": config.merge_capacity}
+            "nonfinite": nonfinite, "merge_capacity": config.tuning.merge_capacity}
 
 
 def row_exposure(images) -> float:

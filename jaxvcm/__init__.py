@@ -24,7 +24,7 @@ from ._integrator import TechniqueImages as TechniqueImages
 from ._integrator import profile_stages as profile_stages
 from ._integrator import technique_images as technique_images
 from ._mis import mis_weight as mis_weight
-from ._mis_recursive import mis_weight_recursive as mis_weight_recursive
+from ._mis import mis_weight_recursive as mis_weight_recursive
 from ._render import Diagnostics as Diagnostics
 from ._render import pass_key as pass_key
 from ._render import render_pass as render_pass

@@ -34,6 +34,12 @@ class Techniques:
         return self.emitter_hits or self.nee or self.connections or self.merging is not None
 
     @property
+    def weighted(self) -> bool:
+        """The techniques carry MIS weights: every algorithm but ppm, whose gather (at the
+        first non-delta camera vertex) and emission along the delta prefix take weight 1."""
+        return self.merging != "first"
+
+    @property
     def light_paths(self) -> bool:
         return self.light_tracing or self.connections or self.merging is not None
 
@@ -63,50 +69,83 @@ MIS_FORMS = ("explicit", "recursive")
 MAX_DEPTH = 64  # path segments; subpaths are [depth, paths] arrays, so memory grows with it
 
 
+def _positive_int(name: str, v) -> None:
+    if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+        raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Tuning:
+    """How a pass does its work: none of these changes what the estimator is, only how
+    its work is laid out and how much room it has (the host driver sets them; the tests
+    check that each leaves the image unchanged, up to float32 round-off where the
+    summation order moves). Private: reached through `RenderConfig.tuning` and set with
+    `RenderConfig.tuned`.
+
+    trace_split:     the subpath tracer advances 1/trace_split of the lanes (at least
+                     `_queue.MIN_ROUND`) per round, only lanes still alive
+                     (`_subpath.trace`); 1 = every lane every round.
+    trace_tail:      rounds of a single-direction trace (PT, light tracing) with at most
+                     1/trace_tail of a round's lanes alive run a step that narrow
+                     (`_subpath.tail_width`); 1 = off; 0 = auto (8 from max_depth >=
+                     3 rr_depth on, else off).
+    chunks:          a pass's camera and light paths are traced in this many chunks, one
+                     after the other (`lax.scan`), so its memory is that of 1/chunks of
+                     its paths (`_memory.chunks_for_memory`). Chunk c holds the paths
+                     c N/chunks .. (c + 1) N/chunks - 1 and as many light paths; its camera
+                     vertices merge with its own photons (eta = pi r^2 N/chunks) while every
+                     chunk's light paths splat onto the whole film with 1/N: an unbiased
+                     pass whose MIS counts are what each technique sees. With chunks > 1
+                     the samples differ from one chunk's (so does the image, within noise).
+    merge_capacity:  static bound on hash-grid candidates per gather point; overflow is
+                     flagged in the diagnostics and the host re-runs the pass with more room.
+    photon_capacity: photons (valid light vertices) the hash grid holds per chunk; 0 = half
+                     the light-vertex slots, at least 4096 (`_merge.photon_room`); overflow
+                     is flagged like merge_capacity's.
+    """
+
+    trace_split: int = 8
+    trace_tail: int = 0
+    chunks: int = 1
+    merge_capacity: int = 512
+    photon_capacity: int = 0
+
+    def __post_init__(self):
+        for name in ("trace_split", "chunks", "merge_capacity"):
+            _positive_int(name, getattr(self, name))
+        for name, what in (("trace_tail", "0: auto"), ("photon_capacity", "0: the default")):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"config.{name}: must be a non-negative integer ({what}), "
+                                 f"got {v!r}")
+
+
+TUNING_FIELDS = tuple(f.name for f in dataclasses.fields(Tuning))
+
+
 @dataclasses.dataclass(frozen=True)
 class RenderConfig:
-    """Everything that changes the compiled program.
+    """The estimator: every setting that changes what a pass computes. Hashable: passed to
+    `jax.jit` as a static argument.
 
     algorithm:   which techniques of the one core are enabled (`TECHNIQUES`).
     max_depth:   maximum number of path segments from the camera to the light
                  (1 = emitters seen directly; a furnace of albedo a converges to
                  Le (1 - a^max_depth) / (1 - a)).
     rr_depth:    Russian roulette starts after this many segments (>= max_depth: off).
-    mis:         "power" (beta = 2) or "balance" heuristic for NEE vs BSDF sampling.
+    mis:         "power" (beta = 2) or "balance" heuristic.
     march_steps: uniform bracketing segments of the heightfield intersector.
     spp:         camera paths per pixel per pass.
     radius:      merging radius of the first pass, as a fraction of the scene's bounding
                  radius; pass i uses r_1 i^((alpha - 1) / 2) (progressive photon mapping).
     alpha:       radius reduction exponent (0 < alpha < 1).
-    merge_capacity: static bound on hash-grid candidates per gather point; overflow is
-                 flagged in the diagnostics and the host re-runs the pass with more room.
-    photon_capacity: static number of photons (valid light vertices) the merging hash grid
-                 holds per pass (chunk); 0 = half the light-vertex slots, at least 4096
-                 (`_merge.photon_room`). Overflow is flagged like merge_capacity's and
-                 the host re-runs the pass with room for every photon.
-    trace_split: the subpath tracer advances 1/trace_split of the lanes (at least
-                 `_queue.MIN_ROUND`) per round, taking
-                 only lanes whose subpath is still alive (`_subpath.trace`); 1 = every
-                 lane every round. Changes the work, not the result.
-    trace_tail:  a round of a single-direction trace (PT, light tracing) with at most
-                 1/trace_tail of a round's lanes left alive runs a step that narrow (at
-                 least `_subpath.TAIL_MIN` lanes, else no tail rounds: `tail_width`);
-                 1 = off; 0 = auto: 8 from max_depth 3 rr_depth on (where the tail is a
-                 third of the rounds), else off (the narrow step costs ~3 s of compile).
-                 Changes the work, not the result.
-    chunks:      camera and light paths of a pass are traced in this many chunks, one
-                 after the other (`lax.scan`), so a pass's memory is that of 1/chunks of its
-                 paths (bounded memory, `chunks_for_memory`). Chunk c has the paths
-                 c N/chunks .. (c + 1) N/chunks - 1 (rows of pixels) and as many light paths;
-                 its camera vertices merge with its own photons (eta = pi r^2 N/chunks),
-                 while every chunk's light paths splat onto the whole film with 1/N, so light
-                 tracing's count stays N: an unbiased pass with the MIS counts of what each
-                 technique sees. 1 = one chunk (the same samples as before chunks existed).
-    mis_form:    "explicit" (log-space sums over all techniques, `_mis.py`, evaluated from
-                 per-subpath partial sums, `_mis_partial.py`) or "recursive" (the tech
-                 report's dVCM/dVC/dVM recursion in linear space, carried along the
-                 subpaths as they are traced, `_mis_recursive.py`: same weights, but
-                 limited float32 range).
+    mis_form:    "explicit" (log-space sums over all techniques, evaluated at each join
+                 from per-subpath partial sums) or "recursive" (the tech report's
+                 dVCM/dVC/dVM recursion in linear space, carried along the subpaths as
+                 they are traced): the same weights, two implementations
+                 (`jaxvcm._mis.AbstractMIS`).
+    tuning:      how the work is laid out (`Tuning`: trace rounds, chunks, capacities),
+                 not what is estimated; set by the host driver, or with `tuned(...)`.
     """
 
     algorithm: str = "pt"
@@ -117,16 +156,24 @@ class RenderConfig:
     spp: int = 1
     radius: float = 0.005
     alpha: float = 0.75
-    merge_capacity: int = 512
-    photon_capacity: int = 0
     mis_form: str = "explicit"
-    trace_split: int = 8
-    trace_tail: int = 0
-    chunks: int = 1
+    tuning: Tuning = Tuning()
 
     @property
     def techniques(self) -> Techniques:
         return TECHNIQUES[self.algorithm]
+
+    def tuned(self, **changes) -> "RenderConfig":
+        """This configuration with some `Tuning` fields changed (`trace_split`,
+        `trace_tail`, `chunks`, `merge_capacity`, `photon_capacity`)."""
+        return dataclasses.replace(self, tuning=dataclasses.replace(self.tuning, **changes))
+
+    def record(self) -> dict:
+        """The settings as one flat dict (the estimator's fields, then the tuning's): what
+        run records (EXR header, JSON) store."""
+        est = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+               if f.name != "tuning"}
+        return est | dataclasses.asdict(self.tuning)
 
     def __post_init__(self):
         if self.algorithm not in ALGORITHMS:
@@ -136,14 +183,8 @@ class RenderConfig:
             raise ValueError(f"config.mis: unknown {self.mis!r}; one of {MIS_HEURISTICS}")
         if self.mis_form not in MIS_FORMS:
             raise ValueError(f"config.mis_form: unknown {self.mis_form!r}; one of {MIS_FORMS}")
-        if (not isinstance(self.trace_tail, int) or isinstance(self.trace_tail, bool)
-                or self.trace_tail < 0):
-            raise ValueError(f"config.trace_tail: must be a non-negative integer (0: auto), "
-                             f"got {self.trace_tail!r}")
-        for name in ("max_depth", "march_steps", "spp", "trace_split", "chunks"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                raise ValueError(f"config.{name}: must be a positive integer, got {v!r}")
+        for name in ("max_depth", "march_steps", "spp", "rr_depth"):
+            _positive_int(name, getattr(self, name))
         if self.max_depth > MAX_DEPTH:
             raise ValueError(f"config.max_depth: must be <= {MAX_DEPTH} (subpaths are stored "
                              f"as [depth, paths] arrays), got {self.max_depth!r}")
@@ -152,12 +193,6 @@ class RenderConfig:
                              f"bounding radius), got {self.radius!r}")
         if not (isinstance(self.alpha, (int, float)) and 0 < self.alpha < 1):
             raise ValueError(f"config.alpha: must lie in (0, 1), got {self.alpha!r}")
-        if not isinstance(self.merge_capacity, int) or self.merge_capacity < 1:
-            raise ValueError(f"config.merge_capacity: must be a positive integer, "
-                             f"got {self.merge_capacity!r}")
-        if (not isinstance(self.photon_capacity, int) or isinstance(self.photon_capacity, bool)
-                or self.photon_capacity < 0):
-            raise ValueError(f"config.photon_capacity: must be a non-negative integer "
-                             f"(0: the default), got {self.photon_capacity!r}")
-        if not isinstance(self.rr_depth, int) or self.rr_depth < 1:
-            raise ValueError(f"config.rr_depth: must be a positive integer, got {self.rr_depth!r}")
+        if not isinstance(self.tuning, Tuning):
+            raise ValueError(f"config.tuning: must be a Tuning record (set it with "
+                             f"RenderConfig.tuned), got {type(self.tuning).__name__}")

@@ -6,19 +6,14 @@ Techniques (s light vertices, t camera vertices, path x_0 .. x_k with k = s + t 
     t = 1          light tracing: light vertex -> pinhole, splatted into the film,
     s, t >= 2      camera vertex z_{t-1} joined to light vertex y_{s-1} of the light
                    subpath with the same index (one light subpath per pixel sample).
-Each technique evaluates its contribution and the pdfs the join changes, and takes its
-MIS weight from the subpaths' partial sums and its join (the `parts` argument: (light,
-camera) `_mis_partial.Partials`), or from the full-path assembly (`_path.family_weights`)
-when `parts` is None (the recursive form, ppm).
+Each technique evaluates its contribution and the four pdfs its join changes, and takes
+its MIS weight from the subpaths' per-subpath MIS state and its join (`parts`: (light,
+camera), `_mis.AbstractMIS.subpaths`; `_mis.mis_form(cfg)` weights them).
 
-With partial sums (or the recursive form's carried records), emitter hits, next-event
-estimation, light tracing and the connections are work queues over (technique, lane)
-items (`_queue.masked_map`): only the items whose vertices exist and can contribute
-(live and emitting; live and non-delta) run the kernel, one item at a time vmapped, each
-gathering its vertices and its partial-sum entries (`_mis_partial.join_weight`), so the
-cost follows the live vertices, not D x N or D^2 x N slots. Without them (ppm's
-assembled paths, and direct calls with parts=None) the techniques are dense families
-over [J, N]: static slices, one kernel per family.
+Each technique is a work queue over (technique, lane) items (`_queue.masked_map`): only the
+items whose vertices exist and can contribute (live and emitting; live and non-delta) run
+the kernel, one item at a time vmapped, each gathering its vertices and its entries of the
+MIS state, so the cost follows the live vertices, not D x N or D^2 x N slots.
 """
 
 from __future__ import annotations
@@ -37,8 +32,8 @@ from . import _subpath as subpath
 from . import _vec as vec
 from ._camera import camera_importance
 from ._config import RenderConfig
-from ._path import (Pdfs, both_dispersed, family_join_weights, family_weights, log_n_light_tracing,
-                    mis_join, no_light_partials, pdfs, pinhole_partials, reverse_pdf)
+from ._mis import mis_form
+from ._path import both_dispersed, log_n_light_tracing, reverse_pdf
 from ._queue import masked_map
 from ._scene import DELTA_LIGHTS, LIGHT_BACKGROUND, LIGHT_SKY, Scene
 from ._subpath import PathEnds, rows, vertex_table
@@ -46,18 +41,7 @@ from ._uniforms import Uniforms
 from ._vec import Vec3
 
 
-def vv(f):
-    """vmap over the two leading axes [J, N] of every argument."""
-    return jax.vmap(jax.vmap(f))
-
-
 # ---------------------------------------------------------------- geometry helpers
-def _unoccluded(scene: Scene, cfg: RenderConfig, o: Vec3, w: Vec3, tmax, want):
-    """Shadow rays [J, N], traced only where `want` holds (False elsewhere; `_queue`)."""
-    return masked_map(lambda o_, w_, t_: geometry.unoccluded(scene, o_, w_, t_, cfg.march_steps),
-                      want, (o, w, tmax), False, cfg.trace_split)
-
-
 def _segment(pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb):
     """The segment a -> b: unit direction, distance, and its shadow ray (origin offset off
     a, direction, tmax short of b's offset point)."""
@@ -69,32 +53,6 @@ def _segment(pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb):
     dd = ob - oa
     ddl = vec.length(dd)
     return w, d, oa, dd / jnp.maximum(ddl, 1e-30), ddl * (1.0 - 1e-5)
-
-
-def _visible(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3, mb,
-             want):
-    """Mutual visibility of two vertices (offset on the correct sides), the unit direction
-    a -> b, the distance, and whether the segment runs through the water. [J, N]; the
-    visibility is only tested (and can only be True) where `want` holds."""
-    w, d, oa, wd, tmax = _segment(pa, na, ma, pb, nb, mb)
-    vis = _unoccluded(scene, cfg, oa, wd, tmax, want)
-    if scene.water.enabled:
-        # a medium vertex lies inside the water body, so membership of the spawn point
-        # decides for every kind of end (the camera included)
-        water_seg = vv(lambda o: geometry.inside_water(scene.water, o))(oa)
-    else:
-        water_seg = jnp.zeros_like(vis)
-    return vis & (d > 1e-7), w, d, water_seg
-
-
-def _tr(scene, water_seg, d):
-    if not scene.water.enabled:
-        return jnp.ones(d.shape + (1,), d.dtype)
-    return jnp.where(water_seg[..., None], media.transmittance(scene.water, d[..., None]), 1.0)
-
-
-def _f(scene):
-    return vv(lambda k_, m_, a, b, n_: subpath.eval_f(scene, k_, m_, a, b, n_))
 
 
 def _sky_id(scene: Scene) -> int:
@@ -116,8 +74,8 @@ class JoinPdfs(NamedTuple):
         A_s1  A(x_{s+1}) = A(z_{t-2}): ... and the one before it (read iff t >= 3),
         B_s1  B(x_{s-1}) = B(y_{s-1}): the camera side generating the light's join vertex,
         B_s2  B(x_{s-2}) = B(y_{s-2}): ... and the one before it (read iff s >= 2).
-    The per-item functions below are the only place the renderer computes them (queued
-    items and dense families alike), so tests/test_join_pdfs.py checks the code that runs.
+    The per-item functions below are the only place the renderer computes them, so the
+    join-pdf tests (tests/mis) check the code that runs.
     Vertices (`z`, `zp`, `y`, `yp`) are one vertex of a `PathEnds` (fields p, n, wo, kind,
     mat, medium, seg_water read)."""
 
@@ -207,162 +165,42 @@ def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
     return JoinPdfs(A_s, A_s1, B_s1, jnp.where(yp_infinite, p4, b))
 
 
-# ---------------------------------------------------------------- s = 0
+# ---------------------------------------------------------------- the techniques
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
-                 etas=(0.0, 0.0), parts=None):
-    """z_j on an emitter or at infinity (sky), j = 1..D: technique (0, j + 1)."""
-    N = cam.A.shape[1]
-    D = cfg.max_depth
-    dt = cam.A.dtype
-    js = np.arange(1, D + 1)
-    if parts is not None:
-        val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas)
-        return {(0, int(j) + 1): val[i] for i, j in enumerate(js)}
-    z, zp = rows(cam, js), rows(cam, js - 1)  # z_j and z_{j-1}
-    Le = verts.Le  # [D, N, C] for z_1..z_D
-    esc = verts.escaped
-    lid = jnp.where(esc, _sky_id(scene), jnp.maximum(verts.light, 0))
-    # z.p: the sky direction if escaped
-    A_s, A_s1, _, _ = vv(lambda z_, zp_, l, e_: emitter_hit_join_pdfs(scene, z_, zp_, l, e_))(
-        z, zp, lid, esc)
-    one = jnp.ones((D, N), dt)
-    log_n = log_n_light_tracing(cfg, N, dt)
-    if parts is None:
-        w = family_weights(cfg, np.zeros(D), js + 1, pdfs(cam), (None, 1), pdfs(cam), (None, 1),
-                           A_s, A_s1, one, one, jnp.zeros((), bool), esc, log_n, etas)
-    else:  # s = 0: no light vertex (an empty light side)
-        w = family_join_weights(cfg, np.zeros(D), js + 1, no_light_partials(cfg, N, dt, etas), parts[1],
-                                A_s, A_s1, one, one, jnp.zeros((), bool), esc, log_n)
-    ok = z.alive & jnp.any(Le > 0, axis=-1)
-    contrib = jnp.where(ok[..., None], z.beta * Le * w[..., None], 0.0)
-    return {(0, int(j) + 1): contrib[i] for i, j in enumerate(js)}
+                 etas, parts):
+    """s = 0: z_j on an emitter or at infinity (sky), j = 1..D: {(0, j + 1): [N, C]}."""
+    val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas)
+    return {(0, j + 1): val[j - 1] for j in range(1, cfg.max_depth + 1)}
 
 
-# ---------------------------------------------------------------- s = 1
-def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas=(0.0, 0.0),
-               parts=None):
-    """NEE from z_j, j = 1..D-1: technique (1, j + 1)."""
-    N = cam.A.shape[1]
-    D = cfg.max_depth
-    dt = cam.A.dtype
-    js = np.arange(1, D)
-    if parts is not None:
-        val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas)
-        return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
-    if isinstance(u_nee, Uniforms):
-        u_nee = u_nee.dense()
-    z, zp = rows(cam, js), rows(cam, js - 1)
-    ls = vv(lambda p_, u: lights.sample_light(scene, p_, u[0], u[1], u[2]))(z.p, u_nee)
-    is_delta_l = jnp.asarray([k in DELTA_LIGHTS for k in scene.lights.kind])[ls.light]
-    inf = ~jnp.isfinite(ls.dist)
-    dist = jnp.where(inf, 0.0, ls.dist)
-    y = z.p + ls.wi * dist
-    f = _f(scene)(z.kind, z.mat, z.wo, ls.wi, z.n)
-    oz = subpath.spawn(z.p, z.n, z.medium, ls.wi)
-    tmax = jnp.where(inf, jnp.inf, vec.length(y - oz) * (1.0 - 1e-4))
-    ok = z.alive & ~z.delta & ls.valid
-    vis = _unoccluded(scene, cfg, oz, ls.wi, tmax, ok)
-    if scene.water.enabled:
-        wseg = vv(lambda o: geometry.inside_water(scene.water, o))(oz)
-    else:
-        wseg = jnp.zeros(inf.shape, bool)
-    Tr = _tr(scene, wseg, jnp.where(inf, jnp.inf, ls.dist))
-    contrib = z.beta * f * ls.Le * Tr / ls.pdf_w[..., None]
-    # ---- pdfs at the join ----
-    A0, (A_s, A_s1, B0, _) = vv(lambda z_, zp_, l_, w_: nee_join_pdfs(scene, z_, zp_, l_, w_))(
-        z, zp, ls, wseg)
-    # the fresh light sample as a one-vertex light subpath
-    J = len(js)
-    f1 = jnp.zeros((J, N, 1), bool)
-    lig = Pdfs(A0[..., None], B0[..., None], jnp.ones((J, N, 1), dt), f1, f1)
-    one = jnp.ones((J, N), dt)
-    log_n = log_n_light_tracing(cfg, N, dt)
-    w = family_weights(cfg, np.ones(J), js + 1, lig, (0, 0), pdfs(cam), (None, 1),
-                       A_s, A_s1, B0, one, is_delta_l, inf, log_n, etas)
-    ok = ok & vis
-    contrib = jnp.where(ok[..., None], contrib * w[..., None], 0.0)
-    return {(1, int(j) + 1): contrib[i] for i, j in enumerate(js)}
+def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas, parts):
+    """s = 1: next-event estimation from z_j, j = 1..D-1: {(1, j + 1): [N, C]}."""
+    js = np.arange(1, cfg.max_depth)
+    val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas)
+    return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
 
 
-# ---------------------------------------------------------------- t = 1
-def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission, cam_o: Vec3,
-                  etas=(0.0, 0.0), parts=None):
-    """y_i -> pinhole, i = 0..D-1: technique (i + 1, 1), splatted: {(s, 1): (pixel, value)}."""
-    N = lig.A.shape[1]
-    D = cfg.max_depth
-    dt = lig.A.dtype
-    idx = np.arange(0, D)
-    if parts is not None:
-        pix, val = _light_tracing_queued(scene, cfg, lig, e, cam_o, parts, idx, etas)
-        return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
-    y, yp = rows(lig, idx), rows(lig, np.maximum(idx - 1, 0))
-    J = len(idx)
-    co = Vec3(*(jnp.broadcast_to(c, (J, N)) for c in cam_o))
-    first = (idx == 0)[:, None]
-    ok = jnp.where(first, ~e.infinite[None], y.alive & ~y.delta)
-    vis, w, d, wseg = _visible(scene, cfg, co, y.n, jnp.ones((J, N), bool), y.p, y.n, y.medium,
-                               ok)
-    pix, imp, inside = vv(lambda w_: camera_importance(scene, w_))(w)
-    Tr = _tr(scene, wseg, d)
-    to_cam = -w
-    # y_0: what it emits towards the camera (Le |cos|; a point light's I); y_i>0: the
-    # scattering factor
-    f0 = vv(lambda l, n_, w_: lights.emitted_toward(scene, l, w_, n_))(
-        jnp.broadcast_to(e.light, (J, N)), y.n, to_cam)
-    fi = _f(scene)(y.kind, y.mat, y.wo, to_cam, y.n)
-    fterm = jnp.where(first[..., None], f0, fi)
-    contrib = (y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30))[..., None]
-               / (N * cfg.chunks))  # 1/N of the whole pass: every chunk splats
-    # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
-    yp_inf = jnp.broadcast_to(((idx - 1) == 0)[:, None] & e.infinite[None], (J, N))
-    _, _, B_s1, B_s2 = vv(lambda *a: light_tracing_join_pdfs(scene, *a))(y, yp, w, d, wseg,
-                                                                         yp_inf)
-    one = jnp.ones((J, N), dt)
-    N0 = jnp.ones((1, N), dt)
-    camp = Pdfs(N0, N0, N0, jnp.zeros((1, N), bool), jnp.zeros((1, N), bool))  # z_0 alone
-    log_n = log_n_light_tracing(cfg, N, dt)
-    wgt = family_weights(cfg, idx + 1, np.ones(J), pdfs(lig), (None, 1), camp, (None, 1),
-                         one, one, B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
-    good = ok & vis & inside
-    val = jnp.where(good[..., None], contrib * wgt[..., None], 0.0)
+def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission,
+                  cam_o: Vec3, etas, parts):
+    """t = 1: y_i -> pinhole, i = 0..D-1, splatted: {(i + 1, 1): (pixel [N], value [N, C])}."""
+    idx = np.arange(0, cfg.max_depth)
+    pix, val = _light_tracing_queued(scene, cfg, lig, e, cam_o, parts, idx, etas)
     return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
 
 
-# ---------------------------------------------------------------- s, t >= 2
-def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds, e: lights.Emission,
-                etas=(0.0, 0.0), parts=None, summed=False):
-    """z_{t-1} joined to y_{s-1} for s, t >= 2, s + t - 1 <= D: {(s, t): [N, C]}; with
-    `summed` and `parts` the family's sum per path [N, C] and its count of non-finite
-    values instead (`_queue.masked_map`'s summed mode: no [J, N, C] buffer, J ~ D^2 / 2)."""
-    N = cam.A.shape[1]
+def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds,
+                e: lights.Emission, parts, summed: bool):
+    """s, t >= 2: z_{t-1} joined to y_{s-1}, s + t - 1 <= D: {(s, t): [N, C]}; `summed`:
+    the family's sum per path [N, C] and its count of non-finite values instead
+    (`_queue.masked_map`'s summed mode: no [J, N, C] buffer, J ~ D^2 / 2)."""
     D = cfg.max_depth
-    dt = cam.A.dtype
     pairs = [(s, t) for s in range(2, D + 1) for t in range(2, D + 2 - s)]
     if not pairs:
         return {}
     ss = np.array([p[0] for p in pairs])
     ts = np.array([p[1] for p in pairs])
-    if parts is not None:
-        val = _connections_queued(scene, cfg, lig, cam, e, parts, ss, ts, summed)
-        return val if summed else {pr: val[i] for i, pr in enumerate(pairs)}
-    y, yp = rows(lig, ss - 1), rows(lig, ss - 2)
-    z, zp = rows(cam, ts - 1), rows(cam, ts - 2)
-    ok = y.alive & ~y.delta & z.alive & ~z.delta
-    vis, w, d, wseg = _visible(scene, cfg, z.p, z.n, z.medium, y.p, y.n, y.medium, ok)  # z -> y
-    fy = _f(scene)(y.kind, y.mat, y.wo, -w, y.n)
-    fz = _f(scene)(z.kind, z.mat, z.wo, w, z.n)
-    Tr = _tr(scene, wseg, d)
-    contrib = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)[..., None]
-    contrib = contrib * both_dispersed(scene.channels, y.disp, z.disp).astype(dt)
-    yp_inf = jnp.broadcast_to(((ss - 2) == 0)[:, None] & e.infinite[None], ok.shape)
-    A_s, A_s1, B_s1, B_s2 = vv(lambda *a: connection_join_pdfs(scene, *a))(y, yp, z, zp, w, d,
-                                                                          wseg, yp_inf)
-    log_n = log_n_light_tracing(cfg, N, dt)
-    wgt = family_weights(cfg, ss, ts, pdfs(lig), (None, 1), pdfs(cam), (None, 1), A_s, A_s1,
-                         B_s1, B_s2, e.delta[None], e.infinite[None], log_n, etas)
-    ok = ok & vis
-    val = jnp.where(ok[..., None], contrib * wgt[..., None], 0.0)
-    return {pr: val[i] for i, pr in enumerate(pairs)}
+    val = _connections_queued(scene, cfg, lig, cam, e, parts, ss, ts, summed)
+    return val if summed else {pr: val[i] for i, pr in enumerate(pairs)}
 
 
 def _visible_one(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3,
@@ -383,16 +221,13 @@ def _tr_one(scene: Scene, wseg, d):
     return jnp.where(wseg, media.transmittance(scene.water, d), 1.0)
 
 
-
-
 def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds,
                         e: lights.Emission, parts, ss, ts, summed=False):
     """The (s, t >= 2) connections [J, N, C] as one work queue over (technique, lane)
     items: only the pairs of live, non-delta vertices run the kernel (the shadow ray, both
     scattering factors, the four join pdfs and the join weight), each gathering its four
-    vertices and its partial-sum entries. In the pool about one light vertex in six
-    survives its first bounce, so a few percent of the J x N pairs are live: the dense
-    family evaluated all of them. The same arithmetic per item as the dense family."""
+    vertices and its entries of the MIS state. In the pool about one light vertex in six
+    survives its first bounce, so a few percent of the J x N pairs are live."""
     N = cam.A.shape[1]
     J = len(ss)
     dt = cam.A.dtype
@@ -420,7 +255,7 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
         A_s, A_s1, B_s1, B_s2 = connection_join_pdfs(scene, y, yp, z, zp, w, d, wseg,
                                                      (s == 2) & e.infinite[n])
         sg = jax.lax.stop_gradient
-        wgt = sg(mis_join(cfg).join_weight(cfg, s, t, parts[0], parts[1], sg(A_s), sg(A_s1),
+        wgt = sg(mis_form(cfg).join_weight(cfg, s, t, parts[0], parts[1], sg(A_s), sg(A_s1),
                                            sg(B_s1), sg(B_s2), e.delta[n], e.infinite[n],
                                            sg(log_n), lanes=((n,), (n,))))
         return jnp.where(vis, contrib * wgt, 0.0)
@@ -437,14 +272,12 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
                          verts: subpath.Vertex, parts, etas):
     """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
     only the live vertices that see emission (a light, or the sky after an escape) evaluate
-    the join; in the pool about one camera vertex in 200. The same arithmetic per item as
-    the dense family (which gathered every field of every row twice and weighted every
-    slot: its cost grew with the depth, not with the hits)."""
+    the join; in the pool about one camera vertex in 200."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
     log_n = log_n_light_tracing(cfg, N, dt)
-    L0 = no_light_partials(cfg, 1, dt, etas)  # s = 0: an empty light side (one lane)
+    L0 = mis_form(cfg).empty_light(cfg, dt, etas)  # s = 0: an empty light side (one lane)
     sky = _sky_id(scene)
     sg = jax.lax.stop_gradient
     cam_at = vertex_table(cam)
@@ -459,7 +292,7 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
         lid = jnp.where(esc, sky, jnp.maximum(r.light, 0))
         A_s, A_s1, _, _ = emitter_hit_join_pdfs(scene, z, zp, lid, esc)
         one = jnp.ones((), dt)
-        w = sg(mis_join(cfg).join_weight(cfg, jnp.asarray(0, jnp.int32), i + 2, L0, parts[1],
+        w = sg(mis_form(cfg).join_weight(cfg, jnp.asarray(0, jnp.int32), i + 2, L0, parts[1],
                                          sg(A_s), sg(A_s1), one, one, jnp.zeros((), bool),
                                          esc, sg(log_n), lanes=((0,), (n,))))
         return z.beta * r.Le * w
@@ -476,8 +309,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
                        etas):
     """Next-event estimation [J, N, C] from z_j (j = js) as one work queue over (vertex,
     lane) items: only live, non-delta camera vertices sample a light, trace the shadow ray
-    and evaluate the join (in the pool about 40 % of the J x N slots). The same arithmetic
-    per item as the dense family."""
+    and evaluate the join (in the pool about 40 % of the J x N slots)."""
     N = cam.A.shape[1]
     J = len(js)
     dt = cam.A.dtype
@@ -527,7 +359,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         # the fresh light sample as a one-vertex light subpath: its entries in closed form
         # (`start_entries`; building its partials per item cost a third of this stage)
         s1 = jnp.asarray(1, jnp.int32)
-        mj = mis_join(cfg)
+        mj = mis_form(cfg)
         Le_ = mj.start_entries(cfg, sg(A0), is_delta_l, sg(etas[0]))
         Ce_ = mj.entries(cfg, parts[1], j + 1, s1, (n,))
         w = sg(mj.join(cfg, s1, j + 1, Le_, Ce_, sg(A_s), sg(A_s1), sg(B0), sg(B_s2),
@@ -552,13 +384,13 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
     """Light tracing (pixel [J, N], value [J, N, C]) from y_i (i = idx) as one work queue
     over (vertex, lane) items: only y_0 of a finite light and the live, non-delta light
     vertices project onto the film (in the pool about one light vertex in six survives
-    its first bounce). The same arithmetic per item as the dense family."""
+    its first bounce)."""
     N = lig.A.shape[1]
     J = len(idx)
     dt = lig.A.dtype
     water = scene.water
     log_n = log_n_light_tracing(cfg, N, dt)
-    Cp = pinhole_partials(cfg, log_n, dt, etas)  # z_0 alone
+    Cp = mis_form(cfg).pinhole(cfg, log_n, dt, etas)  # z_0 alone
     i_of = jnp.asarray(idx, jnp.int32)
     sg = jax.lax.stop_gradient
 
@@ -580,11 +412,11 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
         f0 = lights.emitted_toward(scene, e.light[n], to_cam, y.n)
         fi = subpath.eval_f(scene, y.kind, y.mat, y.wo, to_cam, y.n)
         fterm = jnp.where(first, f0, fi)
-        contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30)) / (N * cfg.chunks)
+        contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30)) / (N * cfg.tuning.chunks)
         # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
         A_s, A_s1, B_s1, B_s2 = light_tracing_join_pdfs(scene, y, yp, w, d, wseg,
                                                         (i == 1) & e.infinite[n])
-        wgt = sg(mis_join(cfg).join_weight(cfg, i + 1, jnp.asarray(1, jnp.int32), parts[0], Cp,
+        wgt = sg(mis_form(cfg).join_weight(cfg, i + 1, jnp.asarray(1, jnp.int32), parts[0], Cp,
                                            A_s, A_s1, sg(B_s1), sg(B_s2), e.delta[n],
                                            e.infinite[n], sg(log_n), lanes=((n,), (0,))))
         return pix, jnp.where(vis & inside, contrib * wgt, 0.0)

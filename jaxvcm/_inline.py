@@ -32,7 +32,7 @@ from jaxtyping import Array
 from . import _connect as connect
 from . import _geometry as geometry
 from . import _lights as lights
-from . import _mis_partial as mis_partial
+from ._mis import _explicit as mis_partial
 from . import _subpath as subpath
 from . import _vec as vec
 from ._config import RenderConfig

@@ -35,12 +35,16 @@ from . import _connect as connect
 from . import _inline as inline
 from . import _lights as lights
 from . import _merge as merge
-from . import _mis_recursive as mis_recursive
 from . import _path as path
 from . import _subpath as subpath
 from ._config import RenderConfig
+from ._lights import Emission
+from ._merge import Merged, Radii
+from ._mis import mis_form
 from ._scene import Scene
+from ._subpath import PathEnds, Vertex, WalkState
 from ._uniforms import Uniforms
+from ._vec import Vec3
 
 
 class Technique(NamedTuple):
@@ -92,38 +96,47 @@ class PassStats(eqx.Module):
     merge_imprecise: Bool[Array, ""]  # the hash grid could not resolve the merging radius
 
 
+Splat = tuple[Int[Array, " N"], Float[Array, "N C"]]  # light tracing: (pixel, value)
+SubpathMIS = Any  # a form's per-subpath MIS state (`_mis.AbstractMIS.subpaths`)
+
+
 class PassState(eqx.Module):
-    """What the stages of one pass have produced so far (None: not yet, or not run).
-    A pytree: `profile_stages` passes it from one jitted stage to the next."""
+    """What the stages of one pass have produced so far (None: not yet, or not run). A
+    pytree: `profile_stages` hands it from one jitted stage to the next. N: the chunk's
+    camera paths (and light paths), D: max_depth."""
 
     key: PRNGKeyArray
-    pass_index: Any
-    chunk: Any = 0  # which chunk of the pass's paths (`RenderConfig.chunks`)
-    keys: Any = None  # [5]: camera rays, camera paths, next-event, emission, light paths
-    radius: Any = None  # `_merge.Radii` of this pass (merging algorithms)
-    etas: Any = None  # log eta_VCM (surface, medium) when every camera vertex merges
-    origins: Any = None  # camera ray origins [N]
-    cam_start: Any = None  # camera subpaths' start states and uniforms (until the trace)
-    cam_u: Any = None
-    emission: Any = None  # `_lights.Emission` [N]
-    light_start: Any = None  # light subpaths' start states and uniforms (until the trace)
-    light_u: Any = None
-    cverts: Any = None  # camera subpath records [D, N]
-    lverts: Any = None  # light subpath records [max(D - 1, 1), N]
-    cends: Any = None  # `_subpath.PathEnds`: records with their start vertex
-    lends: Any = None
-    parts: Any = None  # (light, camera) MIS partial sums, or None
+    pass_index: Int[Array, ""] | int
+    chunk: Int[Array, ""] | int = 0  # which chunk of the pass's paths (`Tuning.chunks`)
+    # ---- setup
+    keys: PRNGKeyArray | None = None  # [5]: camera rays, camera paths, NEE, emission, light paths
+    radius: Radii | None = None  # this pass's merging radii (merging algorithms)
+    etas: tuple[Float[Array, ""], Float[Array, ""]] | None = None  # log eta_VCM (surface,
+    # medium) when every camera vertex merges
+    # ---- camera rays, light emission: the subpaths' starts (consumed by the trace)
+    origins: Vec3 | None = None  # camera ray origins [N]
+    cam_start: WalkState | None = None
+    cam_u: Uniforms | None = None
+    emission: Emission | None = None  # y_0 of every light subpath [N]
+    light_start: WalkState | None = None
+    light_u: Uniforms | None = None
+    # ---- subpaths: their records [D, N] and the records with their start vertex
+    cverts: Vertex | None = None
+    lverts: Vertex | None = None  # [max(D - 1, 1), N]
+    cends: PathEnds | None = None
+    lends: PathEnds | None = None
+    n_cverts: Int[Array, ""] | None = None  # live camera vertices, when no records are kept
+    # ---- MIS: (light, camera) per-subpath state
+    parts: tuple[SubpathMIS, SubpathMIS] | None = None
+    # ---- techniques: per label, [N, C] per camera path or a light-tracing splat
     merge_lengths: bool = eqx.field(static=True, default=False)  # merges split by photon
-    # only the image is wanted (`integrate`): the queued connections come summed per path
-    # (a "sum" label), with their count of non-finite values in `bad`
-    summed: bool = eqx.field(static=True, default=False)
-    bad: Any = 0
-    n_cverts: Any = None  # live camera vertices, when no records were kept (`_inline`)
     labels: tuple[Technique, ...] = eqx.field(static=True, default=())
-    values: tuple = ()  # per label: [N, C] per camera path, or a (pixel, value) splat
-    merged: Any = None  # `_merge.Merged`: overflow flags, candidates and photons needed
-    images: Any = None  # film: `TechniqueImages` and `PassStats`
-    stats: Any = None
+    values: tuple[Float[Array, "N C"] | Splat, ...] = ()
+    bad: Int[Array, ""] | int = 0  # non-finite values of techniques summed per path
+    merged: Merged | None = None  # merging's overflow flags, candidates and photons
+    # ---- film
+    images: TechniqueImages | None = None
+    stats: PassStats | None = None
 
     @property
     def mis_etas(self):
@@ -137,15 +150,15 @@ def _dims(scene: Scene, cfg: RenderConfig):
     """(pixels P, paths N of one chunk, max depth D, dtype)."""
     cam = scene.camera
     P = cam.height * cam.width
-    return P, P * cfg.spp // cfg.chunks, cfg.max_depth, cam.origin.dtype
+    return P, P * cfg.spp // cfg.tuning.chunks, cfg.max_depth, cam.origin.dtype
 
 
 def check_chunks(scene: Scene, cfg: RenderConfig) -> None:
     """The chunks must split the pass's paths evenly."""
     cam = scene.camera
     n = cam.height * cam.width * cfg.spp
-    if n % cfg.chunks:
-        raise ValueError(f"config.chunks: {cfg.chunks} does not divide the pass's "
+    if n % cfg.tuning.chunks:
+        raise ValueError(f"config.tuning.chunks: {cfg.tuning.chunks} does not divide the pass's "
                          f"{n} paths ({cam.width} x {cam.height} x {cfg.spp} spp)")
 
 
@@ -174,16 +187,6 @@ def _add(st: PassState, out: dict) -> PassState:
     return dataclasses.replace(st, labels=tuple(labels), values=tuple(values))
 
 
-def _add_family(st: PassState, s: int, out) -> PassState:
-    """`_add` for a family of techniques: a dict of technique values as it is, or a
-    summed family (value [N, C], non-finite count) as one "sum" label."""
-    if isinstance(out, dict):
-        return _add(st, out)
-    val, bad = out
-    st = _add(st, {Technique("sum", s, 0): val})
-    return dataclasses.replace(st, bad=st.bad + bad)
-
-
 # ---- setup: the pass's random keys and merging radius
 def setup(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, _, dt = _dims(scene, cfg)
@@ -208,9 +211,7 @@ def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
     c0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(
         scene, o, d, jax.lax.stop_gradient(imp))
-    if cfg.mis_form == "recursive":  # z_0's carry: nothing starts at the pinhole
-        c0 = c0._replace(mis=mis_recursive.start_carry(cfg, jnp.ones((N,), dt), False,
-                                                       st.mis_etas[0], dt))
+    c0 = c0._replace(mis=mis_form(cfg).camera_carry(cfg, N, st.mis_etas, dt))
     uc = Uniforms.draw(st.keys[1], (D, N, subpath.N_UNIFORMS), dt)  # hashed where used
     return dataclasses.replace(st, origins=o, cam_start=c0, cam_u=uc)
 
@@ -221,10 +222,7 @@ def light_emission(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
         scene, Uniforms.draw(st.keys[3], (1, N, 5), dt).dense()[0])
     l0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
-    if cfg.mis_form == "recursive":  # y_0's carry: the emitter hit starts there (tr. 31-33)
-        l0 = l0._replace(mis=mis_recursive.start_carry(
-            cfg, jax.lax.stop_gradient(e.pdf_pos), cfg.techniques.emitter_hits & ~e.delta,
-            st.mis_etas[0], dt))
+    l0 = l0._replace(mis=mis_form(cfg).light_carry(cfg, e, st.mis_etas, dt))
     ul = Uniforms.draw(st.keys[4], (_light_steps(cfg), N, subpath.N_UNIFORMS), dt)
     return dataclasses.replace(st, emission=e, light_start=l0, light_u=ul)
 
@@ -236,13 +234,10 @@ def subpaths(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     tech = cfg.techniques
     n_steps = _light_steps(cfg)
     cverts = lverts = cends = lends = None
-    ctx = cm0 = lm0 = None
-    if cfg.mis_form == "recursive":
-        etas = st.mis_etas
-        ctx = mis_recursive.Context(jnp.asarray(etas[0], dt), jnp.asarray(etas[1], dt),
-                                    path.log_n_light_tracing(cfg, N, dt))
-        cm0 = None if st.cam_start is None else st.cam_start.mis
-        lm0 = None if st.light_start is None else st.light_start.mis
+    ctx = mis_form(cfg).trace_context(cfg, st.mis_etas, path.log_n_light_tracing(cfg, N, dt),
+                                      dt)
+    cm0 = None if st.cam_start is None else st.cam_start.mis
+    lm0 = None if st.light_start is None else st.light_start.mis
     # the records come back with the start vertices z_0 / y_0 as row 0 (`subpath.trace`'s
     # v0), so that they are the `PathEnds` as they are
     c0 = l0 = None
@@ -286,23 +281,13 @@ def camera_paths_inline(scene: Scene, cfg: RenderConfig, st: PassState) -> PassS
                                cam_u=None)
 
 
-# ---- MIS partial sums of each subpath (O(D) per subpath, then O(1) per technique)
+# ---- per-subpath MIS state (O(D) per subpath, then O(1) per technique at its join)
 def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, _, dt = _dims(scene, cfg)
-    tech = cfg.techniques
-    lparts = cparts = None
-    log_n = path.log_n_light_tracing(cfg, N, dt)
-    if cfg.mis_form == "recursive":  # the records carried along the subpaths
-        cparts = None if st.cends is None else path.carried(cfg, st.cends, st.mis_etas)
-        lparts = None if st.lends is None else path.carried(cfg, st.lends, st.mis_etas)
-    elif tech.camera_paths and tech.light_paths:
-        lparts, cparts = path.both_partials(cfg, path.pdfs(st.lends), path.pdfs(st.cends),
-                                            st.emission.delta, log_n, st.mis_etas)
-    elif tech.camera_paths:
-        cparts = path.camera_partials(cfg, path.pdfs(st.cends), log_n, st.mis_etas)
-    else:
-        lparts = path.light_partials(cfg, path.pdfs(st.lends), st.emission.delta, st.mis_etas)
-    return dataclasses.replace(st, parts=(lparts, cparts))
+    delta_light = None if st.emission is None else st.emission.delta
+    parts = mis_form(cfg).subpaths(cfg, st.lends, st.cends, delta_light,
+                                   path.log_n_light_tracing(cfg, N, dt), st.mis_etas)
+    return dataclasses.replace(st, parts=parts)
 
 
 # ---- [s = 0] emitter hits of the camera subpaths (ppm: in its gather)
@@ -327,10 +312,21 @@ def light_tracing(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
                                           st.mis_etas, st.parts))
 
 
-# ---- [s, t >= 2] connections of camera and light vertices
+# ---- [s, t >= 2] connections of camera and light vertices: one image per technique, or
+#      (image only) summed per path
 def connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    return _add_family(st, 2, connect.connections(scene, cfg, st.lends, st.cends, st.emission,
-                                                  st.mis_etas, st.parts, st.summed))
+    return _add(st, connect.connections(scene, cfg, st.lends, st.cends, st.emission, st.parts,
+                                        summed=False))
+
+
+def connections_summed(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    out = connect.connections(scene, cfg, st.lends, st.cends, st.emission, st.parts,
+                              summed=True)
+    if not out:  # max_depth 2: no (s, t >= 2) technique
+        return st
+    val, bad = out
+    st = _add(st, {Technique("sum", 2, 0): val})
+    return dataclasses.replace(st, bad=st.bad + bad)
 
 
 # ---- merging: hash grid over the light vertices, gather at camera vertices
@@ -385,17 +381,19 @@ def film(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
                                stats=stats)
 
 
-def pass_stages(cfg: RenderConfig, summed: bool = False) -> list[tuple[str, Stage]]:
-    """The named stages of `cfg`'s pass, in the order they run. The techniques' order is
-    the film's (and `integrate`'s summation) order, so ppm's gather comes before the
-    light-side techniques and bpm / vcm's merging after them. `summed`: the pass wants only
-    the image (`integrate`); PT then evaluates its techniques inside the camera trace
-    (`_inline`: one stage for the subpaths, emitter hits and next-event estimation)."""
+def pass_stages(cfg: RenderConfig, image_only: bool = False) -> list[tuple[str, Stage]]:
+    """The named stages of `cfg`'s pass, in the order they run: the one place that chooses
+    a pass's route. The techniques' order is the film's (and `integrate`'s summation)
+    order, so ppm's gather comes before the light-side techniques and bpm / vcm's merging
+    after them. `image_only`: the pass wants only its image (`integrate`), not one image
+    per technique: the connections come summed per path, and PT evaluates its techniques
+    inside the camera trace (`_inline`: one stage for the subpaths, emitter hits and
+    next-event estimation, no records)."""
     tech = cfg.techniques
     D = cfg.max_depth
     cam, light = tech.camera_paths, tech.light_paths
     stages: list[tuple[str, Stage]] = [("setup", setup)]
-    if summed and inline.enabled(cfg):
+    if image_only and inline.enabled(cfg):
         return stages + [("camera rays", camera_rays),
                          ("subpaths, emitter hits, next-event estimation",
                           camera_paths_inline), ("film", film)]
@@ -404,7 +402,7 @@ def pass_stages(cfg: RenderConfig, summed: bool = False) -> list[tuple[str, Stag
     if light:
         stages.append(("light emission", light_emission))
     stages.append(("subpaths", subpaths))
-    if path.joins_partials(cfg):
+    if tech.weighted:
         stages.append(("mis partials", mis_partials))
     if cam and tech.emitter_hits and tech.merging != "first":
         stages.append(("emitter hits", emitter_hits))
@@ -415,7 +413,7 @@ def pass_stages(cfg: RenderConfig, summed: bool = False) -> list[tuple[str, Stag
     if light and tech.light_tracing:
         stages.append(("light tracing", light_tracing))
     if light and tech.connections:
-        stages.append(("connections", connections))
+        stages.append(("connections", connections_summed if image_only else connections))
     if light and tech.merging == "all" and D >= 2:
         stages.append(("merging", vertex_merging))
     stages.append(("film", film))
@@ -429,8 +427,8 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
     merges split by path length as well (label ("merge", s, t): photon y_{s-1} merged at
     z_{t-1}, a path of s + t - 2 segments) instead of one image per camera vertex (s = 0);
     the gather's sums are then max_depth - 1 times as wide."""
-    if cfg.chunks != 1:
-        raise ValueError(f"config.chunks: technique images need one chunk, got {cfg.chunks}")
+    if cfg.tuning.chunks != 1:
+        raise ValueError(f"config.tuning.chunks: technique images need one chunk, got {cfg.tuning.chunks}")
     st = PassState(key=key, pass_index=pass_index, merge_lengths=merge_lengths)
     for _, stage in pass_stages(cfg):
         st = stage(scene, cfg, st)
@@ -440,15 +438,15 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
 def integrate(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_index=0
               ) -> tuple[Float[Array, "H W C"], Int[Array, ""], PassStats]:
     """The pass's image (the sum of its technique images, non-finite contributions zeroed),
-    the number of non-finite contributions, and its stats. With `cfg.chunks` > 1 the
+    the number of non-finite contributions, and its stats. With `cfg.tuning.chunks` > 1 the
     chunks run one after the other in a `lax.scan` (keys `fold_in(key, chunk)`), each
     adding its techniques straight into the image (`_chunk_film`), so no [techniques, H, W]
     stack or whole-pass subpath record is ever held."""
     check_chunks(scene, cfg)
-    if cfg.chunks > 1:
+    if cfg.tuning.chunks > 1:
         return _integrate_chunks(scene, key, cfg, pass_index)
-    st = PassState(key=key, pass_index=pass_index, summed=True)
-    for name, stage in pass_stages(cfg, True):
+    st = PassState(key=key, pass_index=pass_index)
+    for name, stage in pass_stages(cfg, image_only=True):
         if name != "film":  # the techniques go straight into one image, not one each
             st = stage(scene, cfg, st)
     img, bad, stats = _chunk_film(scene, cfg, st)
@@ -481,7 +479,7 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
     else:
         cam_sum, bad = jnp.zeros((N, C), dt), jnp.zeros((), jnp.int32)
     cam_sum = cam_sum / cfg.spp
-    if cfg.chunks == 1:  # path n is pixel n % P: a reshape, no scatter
+    if cfg.tuning.chunks == 1:  # path n is pixel n % P: a reshape, no scatter
         img = cam_sum.reshape(cfg.spp, P, C).sum(axis=0)
     else:
         img = jnp.zeros((P, C), dt).at[_path_pixels(scene, cfg, st)].add(cam_sum)
@@ -501,12 +499,11 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
 def _integrate_chunks(scene, key, cfg, pass_index):
     cam = scene.camera
     H, W, C = cam.height, cam.width, scene.channels
-    stages = [f for name, f in pass_stages(cfg, True) if name != "film"]
+    stages = [f for name, f in pass_stages(cfg, image_only=True) if name != "film"]
 
     def body(carry, c):
         img, bad, stats = carry
-        st = PassState(key=jax.random.fold_in(key, c), pass_index=pass_index, chunk=c,
-                       summed=True)
+        st = PassState(key=jax.random.fold_in(key, c), pass_index=pass_index, chunk=c)
         for stage in stages:
             st = stage(scene, cfg, st)
         i2, b2, s2 = _chunk_film(scene, cfg, st)
@@ -523,7 +520,7 @@ def _integrate_chunks(scene, key, cfg, pass_index):
     init = (jnp.zeros((H * W, C), cam.origin.dtype), zero,
             PassStats(zero, zero, jnp.zeros((), bool), zero, jnp.zeros((), bool), zero,
                       jnp.zeros((), bool)))
-    (img, bad, stats), _ = jax.lax.scan(body, init, jnp.arange(cfg.chunks, dtype=jnp.int32))
+    (img, bad, stats), _ = jax.lax.scan(body, init, jnp.arange(cfg.tuning.chunks, dtype=jnp.int32))
     return img.reshape(H, W, C), bad, stats
 
 
@@ -581,10 +578,10 @@ def profile_stages(scene: Scene, cfg: RenderConfig, passes: int = 3, seed: int =
         raise ValueError(f"passes: must be >= 1, got {passes}")
     keys = [jax.random.fold_in(jax.random.key(seed), i) for i in range(passes)]  # pass_key
     cfg = _with_room(scene, cfg, keys)
-    stages = [(name, _stage_program(fn, cfg)) for name, fn in pass_stages(cfg, True)]
+    stages = [(name, _stage_program(fn, cfg)) for name, fn in pass_stages(cfg, image_only=True)]
 
     def one_pass(i, times):
-        st = jax.block_until_ready(PassState(key=keys[i], pass_index=i, summed=True))
+        st = jax.block_until_ready(PassState(key=keys[i], pass_index=i))
         for name, fn in stages:
             t0 = time.perf_counter()
             st = jax.block_until_ready(fn(scene, st))

@@ -18,7 +18,6 @@ the measured figures) says a single chunk might not fit.
 
 from __future__ import annotations
 
-import dataclasses
 import re
 
 import jax
@@ -53,7 +52,7 @@ def _paths(scene, cfg: RenderConfig) -> int:
 def _probe_bytes(scene, cfg: RenderConfig, paths: int) -> int:
     """XLA's memory analysis (temporaries + outputs + arguments) of the pass compiled with
     chunks of `paths` paths."""
-    c = dataclasses.replace(cfg, chunks=_paths(scene, cfg) // paths)
+    c = cfg.tuned(chunks=_paths(scene, cfg) // paths)
     exe = jax.jit(integrate, static_argnums=2).lower(scene, jax.random.key(0), c, 0).compile()
     m = exe.memory_analysis()
     return int(m.temp_size_in_bytes + m.output_size_in_bytes + m.argument_size_in_bytes)
@@ -107,12 +106,12 @@ def device_budget(device) -> int | None:
 
 
 def auto_chunks(scene, cfg: RenderConfig, device) -> int:
-    """`cfg.chunks`, or, when `device` reports its memory and a rough upper bound of the
+    """`cfg.tuning.chunks`, or, when `device` reports its memory and a rough upper bound of the
     one-chunk pass exceeds its budget, `chunks_for_memory` of that budget (one probe
     compile)."""
     budget = device_budget(device)
-    if budget is None or cfg.chunks != 1:
-        return cfg.chunks
+    if budget is None or cfg.tuning.chunks != 1:
+        return cfg.tuning.chunks
     kind = "both" if cfg.techniques.light_paths else "camera"
     if _paths(scene, cfg) * cfg.max_depth * ROUGH_BYTES[kind] <= budget:
         return 1

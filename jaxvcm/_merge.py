@@ -20,7 +20,6 @@ grid is built for the larger one and each pair is accepted with its own kind's r
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import NamedTuple
 
@@ -34,7 +33,8 @@ from . import _queue as queue
 from . import _subpath as subpath
 from . import _vec as vec
 from ._config import RenderConfig
-from ._path import both_dispersed, log_n_light_tracing, mis_join, pdfs, reverse_pdf, weight
+from ._mis import mis_form
+from ._path import both_dispersed, log_n_light_tracing, reverse_pdf
 from ._scene import Scene, bounding_sphere
 from ._subpath import PathEnds
 from ._vec import Vec3
@@ -140,7 +140,7 @@ PHOTON_MIN_ROOM = 4096  # ... and at least this many (smaller passes keep every 
 
 def photon_room(cfg: RenderConfig, slots: int) -> int:
     """Static number of photons the hash grid holds for `slots` light-vertex slots
-    ([max(D - 1, 1), paths] flattened): `cfg.photon_capacity` if set, else
+    ([max(D - 1, 1), paths] flattened): `cfg.tuning.photon_capacity` if set, else
     PHOTON_FRACTION of the slots rounded up to a multiple of 1024 and at least
     PHOTON_MIN_ROOM; never more than the slots (then nothing is compacted). Valid photons
     measured at depth 8, 48x48, two keys (pool also 256x256: 6.6 %): pool 6.2-6.3 %,
@@ -150,8 +150,8 @@ def photon_room(cfg: RenderConfig, slots: int) -> int:
     do for the pools (5 % less merging time there) but made the Cornell boxes re-run (and
     recompile) their first pass. Shallow depths have larger shares (the Cornell boxes'
     first row: 60-78 %); those overflow once, and the host re-run gives them room."""
-    if cfg.photon_capacity:
-        room = int(cfg.photon_capacity)
+    if cfg.tuning.photon_capacity:
+        room = int(cfg.tuning.photon_capacity)
     else:
         room = max(PHOTON_MIN_ROOM, -(-int(math.ceil(slots * PHOTON_FRACTION)) // 1024) * 1024)
     return min(room, slots)
@@ -166,21 +166,21 @@ def more_room(cfg: RenderConfig, need=None, photon_overflow=None, photons=None) 
     more than the valid `photons` (the next passes' counts scatter around it); with no
     count, every light-vertex slot. The photon room is a power of two so that the re-run
     programs stay few; one re-run is enough for the pass that overflowed."""
-    cand = need is None or need > cfg.merge_capacity
+    cand = need is None or need > cfg.tuning.merge_capacity
     if photon_overflow is None:
         photon_overflow = not cand
     if cand:
-        cap = 2 * cfg.merge_capacity
+        cap = 2 * cfg.tuning.merge_capacity
         if need is not None:
             cap = max(cap, 1 << max(need - 1, 1).bit_length())
-        cfg = dataclasses.replace(cfg, merge_capacity=cap)
+        cfg = cfg.tuned(merge_capacity=cap)
     if photon_overflow:
         if photons is None:
             room = 2**30  # more than any pass has slots: no compaction
         else:
             want = photons + photons // 4
-            room = max(2 * cfg.photon_capacity, 1 << max(want - 1, 1).bit_length())
-        cfg = dataclasses.replace(cfg, photon_capacity=room)
+            room = max(2 * cfg.tuning.photon_capacity, 1 << max(want - 1, 1).bit_length())
+        cfg = cfg.tuned(photon_capacity=room)
     return cfg
 
 
@@ -293,7 +293,7 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
     total, overflow, need = hashgrid.query_reduce(ph.grid, zp.x, zp.y, zp.z,
                                                   _photon_slots(ph, kernel),
                                                   _search_radius(radius),
-                                                  max_candidates=cfg.merge_capacity,
+                                                  max_candidates=cfg.tuning.merge_capacity,
                                                   return_need=True, valid=has)
     rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow, ~ph.grid.precise)
     est = zbeta * total / (kernel_size(zmed, radius) * N)[:, None]
@@ -308,20 +308,19 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
 
 # ---------------------------------------------------------------- bpm / vcm: merging with MIS
 def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds, e, radius,
-                   parts=None, by_photon: bool = False):
+                   parts, by_photon: bool = False):
     """Merging at every non-delta camera vertex z_j (j = 1..D-1) with every photon y_i
     (i >= 1) within `radius`, like with like, weighted by the explicit-sum MIS over all
     connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
-    `parts`: the subpaths' (light, camera) MIS partials (`_mis_partial`) or carried records
-    (`_mis_recursive`, `_path.mis_join`): each candidate then gathers O(1) entries; None: each assembles its full path (`_path.weight`).
+    `parts`: the subpaths' (light, camera) per-subpath MIS state (`_mis.AbstractMIS.subpaths`):
+    each candidate gathers O(1) entries of it.
     Returns ([D-1, N, C]: per gather vertex z_j and camera lane, the `Merged` report);
     `by_photon` (static, for per-technique images): [D-1, N, I, C], split by the
     photon's index i = 1..I as well (the gather's sums D-1 times as wide)."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
-    etas = log_etas(radius, N, dt)
     log_n = log_n_light_tracing(cfg, N, dt)
     # ---- photons y_1..y_{D-1}, gather points z_1..z_{D-1}, flattened (index = row * N + lane)
     li = np.arange(1, lig.A.shape[0])
@@ -332,8 +331,6 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     ph = photon_grid(cfg, py, pvalid, radius, dt)
     zq = Vec3(*(flat(c, ci) for c in cam.p))
     zvalid = flat(cam.alive, ci) & ~flat(cam.delta, ci)  # dead / delta: no look-up
-    lig_pdfs = pdfs(lig)
-    cam_pdfs = pdfs(cam)
 
     cam_at, lig_at = subpath.vertex_table(cam), subpath.vertex_table(lig)
 
@@ -358,20 +355,11 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
         A_s1, _ = rev(z.kind, z.mat, z.n, z.p, y.wo, z.wo, zp.p, zp.medium, zp.n, z.seg_water)
         b1, pb1 = rev(z.kind, z.mat, z.n, z.p, z.wo, y.wo, yp.p, yp.medium, yp.n, y.seg_water)
         B_s1 = jnp.where((ip == 1) & e.infinite[ll], pb1, b1)
-        B_s2 = lig_pdfs.B[jnp.maximum(ip - 2, 0), ll]
-        if parts is None:
-            lig_l = jax.tree.map(lambda a: a[:, ll].T, lig_pdfs)
-            cam_l = jax.tree.map(lambda a: a[:, lc].T, cam_pdfs)
-            w = jax.vmap(weight, in_axes=(None, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, None,
-                                          None, None))(
-                cfg, ip, jq + 1, lig_l, cam_l, y.A, A_s1, B_s1, B_s2, e.delta[ll],
-                e.infinite[ll], log_n, etas[0], etas[1], True)
-        else:
-            sg = jax.lax.stop_gradient
-            w = mis_join(cfg).join_weight(cfg, ip, jq + 1, parts[0], parts[1], sg(y.A),
-                                         sg(A_s1), sg(B_s1), sg(B_s2), e.delta[ll],
-                                         e.infinite[ll], sg(log_n), merge=True,
-                                         lanes=((ll,), (lc,)))
+        B_s2 = lig.B[jnp.maximum(ip - 2, 0), ll]
+        sg = jax.lax.stop_gradient
+        w = mis_form(cfg).join_weight(cfg, ip, jq + 1, parts[0], parts[1], sg(y.A), sg(A_s1),
+                                      sg(B_s1), sg(B_s2), e.delta[ll], e.infinite[ll],
+                                      sg(log_n), merge=True, lanes=((ll,), (lc,)))
         val = jnp.where(ok[:, None], (fz * y.beta) * w[:, None], 0.0)
         if by_photon:  # [B, D-1, C]: the value in the row of its photon y_i
             rows = jnp.asarray(li, jnp.int32)
@@ -381,7 +369,7 @@ def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds
     total, overflow, need = hashgrid.query_reduce(ph.grid, zq.x, zq.y, zq.z,
                                                   _photon_slots(ph, kernel),
                                                   _search_radius(radius),
-                                                  max_candidates=cfg.merge_capacity,
+                                                  max_candidates=cfg.tuning.merge_capacity,
                                                   return_need=True, valid=zvalid)
     rep = Merged(overflow | ph.overflow, need, ph.count, ph.overflow, ~ph.grid.precise)
     zmed = flat(cam.medium, ci)

@@ -4,8 +4,8 @@ progress bar, atomic snapshots) used by RGB `render` and spectral `render_spectr
 
 from __future__ import annotations
 
-import dataclasses
 import functools
+from typing import Any, Callable
 import hashlib
 import os
 import time as _time
@@ -71,43 +71,35 @@ def _render_pass_jit(scene, key, config, pass_index=0):
     return render_pass(scene, key, config, pass_index)
 
 
-def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index, overflow_of,
-               need_of=None, photons_of=None):
+def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index,
+               core: Callable[[Any], Diagnostics], geometry: Scene, valid=None):
     """Host side: run `jitted_pass(scene, key, config, pass_index)`; if merging overflowed a
-    static capacity (`overflow_of(diagnostics)`), re-run the same pass (same key) with more
-    room (jax-md's re-allocation pattern); never truncate. The candidate room is the power
-    of two that holds the longest candidate list the pass reported (`need_of`), at least
-    twice the old one; the photon room (`photons_of(diagnostics)` = (photon overflow, valid
-    photons)) at least doubles and holds the photons with a margin (`_merge.more_room`), so
-    one re-run (one new compiled program) is enough. Returns (estimate, diagnostics, the
-    config that had room). Before it, a merging radius the hash grid cannot resolve at the
-    scene's scale is a one-line error (`_merge.check_precise`), never a silent miss."""
-    inner = scene if hasattr(scene, "bounds") else getattr(scene, "scene", None)
-    if inner is not None:
-        _merge.check_precise(inner, config, pass_index)
+    static capacity, re-run the same pass (same key) with more room (jax-md's
+    re-allocation pattern); never truncate. `core(diagnostics)` is the pass's core
+    `Diagnostics` (leading batch axes allowed; `valid`: which batch entries count);
+    `geometry` is the scene whose box bounds the photons. The candidate room is the power of
+    two that holds the longest candidate list the pass reported, at least twice the old
+    one; the photon room at least doubles and holds the photons with a margin
+    (`_merge.more_room`), so one re-run (one new compiled program) is enough. Returns
+    (estimate, diagnostics, the config that had room). Before it, a merging radius the
+    hash grid cannot resolve at the scene's scale is a one-line error
+    (`_merge.check_precise`), never a silent miss."""
+    _merge.check_precise(geometry, config, pass_index)
     while True:
         est, diag = jitted_pass(scene, key, config, pass_index)
-        if _imprecise(diag):  # the grid's own flag: a backstop behind check_precise
+        d = core(diag)
+        if bool(np.any(d.merge_imprecise)):  # the grid's own flag, behind check_precise:
             # check_precise bounded the photons by the scene's box: they were outside it
             raise ValueError(f"config.radius: the hash grid could not resolve pass "
                              f"{int(np.max(np.asarray(pass_index))) + 1}'s merging radius at "
                              f"the photons' coordinates (photons outside the scene's box); "
                              f"use a larger radius or a float64 scene")
-        if not bool(np.any(overflow_of(diag))):
+        counts = (lambda x: x) if valid is None else (lambda x: x & valid)  # noqa: E731
+        if not bool(np.any(counts(d.merge_overflow))):
             return est, diag, config
-        need = None if need_of is None else int(np.max(np.asarray(need_of(diag))))
-        p_over = photons = None
-        if photons_of is not None:
-            p_over, photons = photons_of(diag)
-            p_over, photons = bool(np.any(p_over)), int(np.max(np.asarray(photons)))
-        config = _merge.more_room(config, need, p_over, photons)
-
-
-def _imprecise(diag) -> bool:
-    """`Diagnostics.merge_imprecise` of a pass's diagnostics (plain, spectral's `.core`, or
-    inside a tuple), as a host bool."""
-    cands = [diag, getattr(diag, "core", None)] + (list(diag) if isinstance(diag, tuple) else [])
-    return any(isinstance(d, Diagnostics) and bool(np.any(d.merge_imprecise)) for d in cands)
+        config = _merge.more_room(config, int(np.max(np.asarray(d.merge_candidates))),
+                                  bool(np.any(counts(d.photon_overflow))),
+                                  int(np.max(np.asarray(d.merge_photons))))
 
 
 def _host_pass(scene, key, config, pass_index=0):
@@ -120,9 +112,7 @@ def _host_pass(scene, key, config, pass_index=0):
 def render_pass_host(scene, key, config, pass_index=0):
     """`render_pass` (jitted, or exported for warm starts: `_warm`) with the
     merge-capacity re-run of `with_retry`."""
-    return with_retry(_host_pass, scene, key, config, pass_index,
-                      lambda d: d.merge_overflow, lambda d: d.merge_candidates,
-                      lambda d: (d.photon_overflow, d.merge_photons))
+    return with_retry(_host_pass, scene, key, config, pass_index, lambda d: d, scene)
 
 
 def pass_key(seed: int, index: int) -> PRNGKeyArray:
@@ -261,7 +251,7 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     seconds; the passes are those an uninterrupted render draws, so the result equals it to
     float32 rounding of the stored mean. `memory` (bytes, or '4G'): trace each pass in as
     many chunks as keep its working memory under it (`_memory.chunks_for_memory`, which
-    sets `config.chunks`); None: the device's memory where it reports one
+    sets `config.tuning.chunks`); None: the device's memory where it reports one
     (`_memory.auto_chunks`; on the CPU one chunk). `techniques`: `out`'s EXR also holds
     every technique's image as a layer (`technique_layer` names them; their sum is the
     image), from `technique_images(merge_lengths=True)` on one device in one chunk."""
@@ -277,10 +267,10 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
                                   progress, exposure, scene_path, devices, resume, memory)
     if memory is not None:
         budget = _memory.parse_bytes(memory) if isinstance(memory, str) else int(memory)
-        config = dataclasses.replace(config, chunks=_memory.chunks_for_memory(scene, config,
+        config = config.tuned(chunks=_memory.chunks_for_memory(scene, config,
                                                                               budget))
     else:  # the device's own memory, where its runtime reports it (GPUs; not the CPU)
-        config = dataclasses.replace(config, chunks=_memory.auto_chunks(scene, config, local[0]))
+        config = config.tuned(chunks=_memory.auto_chunks(scene, config, local[0]))
     state = {"config": config}
     start = None
     if resume:
@@ -303,8 +293,7 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
         valid = np.arange(G) < n
         sums, diag, state["config"] = with_retry(
             lambda s, k, c, p: dsum.run(k, p, valid, c), scene, keys, state["config"], idx,
-            lambda d: d.merge_overflow & valid, lambda d: d.merge_candidates,
-            lambda d: (d.photon_overflow & valid, d.merge_photons))
+            lambda d: d, scene, valid)
         dsum.add(sums)
         return n, int(np.sum(np.asarray(diag.nonfinite)[valid]))
 
@@ -354,13 +343,12 @@ def _render_techniques(scene, config, passes, time, seed, snapshot_every, out, p
         raise ValueError("memory: not with techniques (per-technique images need one chunk)")
     if resume:
         raise ValueError("resume: not with techniques")
-    state = {"config": dataclasses.replace(config, chunks=1), "labels": ()}
+    state = {"config": config.tuned(chunks=1), "labels": ()}
 
     def run_pass(i):
         tech, (bad, _), state["config"] = with_retry(
             _technique_pass, scene, pass_key(seed, i), state["config"], i,
-            lambda d: d[1].merge_overflow, lambda d: d[1].merge_candidates,
-            lambda d: (d[1].photon_overflow, d[1].merge_photons))
+            lambda d: d[1], scene)
         state["labels"] = tech.labels
         return tech.images, bad
 
@@ -436,7 +424,7 @@ def _meta(scene, scene_path, config, passes, seconds, seed, nonfinite, snapshot)
             h = hashlib.sha256(f.read()).hexdigest()
     return {
         "scene": scene_path, "scene_sha256": h, "scene_name": scene.name,
-        "algorithm": config.algorithm, "config": dataclasses.asdict(config),
+        "algorithm": config.algorithm, "config": config.record(),
         "passes": passes, "seconds": round(seconds, 3), "seed": seed,
         "nonfinite": nonfinite, "snapshot": snapshot, "version": __version__,
         "width": scene.camera.width, "height": scene.camera.height,

@@ -43,7 +43,7 @@ from . import _geometry as geometry
 from . import _lights as lights
 from . import _materials as materials
 from . import _media as media
-from . import _mis_recursive as mis_recursive
+from ._mis import _recursive as mis_recursive
 from . import _vec as vec
 from ._config import RenderConfig
 from ._queue import Packed, first_true, round_width
@@ -317,7 +317,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     lane's y_0 / z_0 reverse pdf p(v_0 | v_1) (1 where v_1 does not exist).
 
     A queue of lanes, not a loop over depths: each round advances the first
-    L / cfg.trace_split lanes (`_queue.round_width`) that are still alive by one vertex (gather, `step`, scatter
+    L / cfg.tuning.trace_split lanes (`_queue.round_width`) that are still alive by one vertex (gather, `step`, scatter
     back), so the work follows the vertices that exist, not L x n_steps. Rounds with no
     live lane left are skipped (`lax.cond` on a scalar); there are enough rounds for
     every lane to run every step (n_steps L / W full ones and n_steps more), so nothing is
@@ -344,7 +344,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     if v0 is not None:
         rev_to0 = (jnp.full((L,), not radiance) if static else ~radiance)
     limit = jnp.full((L,), n_steps, jnp.int32) if limit is None else limit
-    W = round_width(L, cfg.trace_split)  # lanes per round
+    W = round_width(L, cfg.tuning.trace_split)  # lanes per round
     # Enough rounds for every lane to run every step: a round either advances W lanes (at
     # most n_steps L / W such rounds) or every lane that still has a step to take, and a
     # lane takes at most n_steps steps, so at most n_steps rounds are not full. (It was
@@ -445,7 +445,7 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
 
 
 def tail_width(W: int, cfg: RenderConfig, single: bool) -> int | None:
-    """Width of the trace's tail rounds (`trace`), or None for none: W / cfg.trace_tail
+    """Width of the trace's tail rounds (`trace`), or None for none: W / cfg.tuning.trace_tail
     lanes, when that is at least TAIL_MIN, in single-direction traces (`single`).
 
     The queue's last rounds are not full: once fewer than W lanes are alive, each round
@@ -458,7 +458,7 @@ def tail_width(W: int, cfg: RenderConfig, single: bool) -> int | None:
     9.6 s), hence by default only from max_depth 3 rr_depth on (`RenderConfig.trace_tail`
     0), and only in single-direction traces (PT, light tracing): in `trace_both` the copy
     would cost VCM's first pass its 15 s budget (docs/design.md, "Speed, tenth step")."""
-    tail = cfg.trace_tail or (8 if cfg.max_depth >= 3 * cfg.rr_depth else 1)
+    tail = cfg.tuning.trace_tail or (8 if cfg.max_depth >= 3 * cfg.rr_depth else 1)
     if not single or tail <= 1:
         return None
     Wt = W // tail

@@ -4,7 +4,6 @@ the progressive spectral render on the one host driver (`_render.progressive`)."
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import equinox as eqx
@@ -94,15 +93,14 @@ def render_spectral(spectral: SpectralScene, passes: int | None = 16, seed: int 
     def run_pass(i):
         xyz, diag, state["config"] = with_retry(render_pass_spectral_jit, spectral,
                                                 pass_key(seed, i), state["config"], i,
-                                                lambda d: d.core.merge_overflow,
-                                                lambda d: d.core.merge_candidates)
+                                                lambda d: d.core, spectral.scene)
         return xyz, diag.core.nonfinite
 
     def meta(n, seconds, nonfinite, snapshot):
         cfg = state["config"]
         return {"scene_name": spectral.scene.name, "mode": "spectral",
                 "n_wavelengths": spectral.n_wavelengths, "algorithm": cfg.algorithm,
-                "config": dataclasses.asdict(cfg), "passes": n, "seed": seed,
+                "config": cfg.record(), "passes": n, "seed": seed,
                 "nonfinite": nonfinite, "width": spectral.scene.camera.width,
                 "height": spectral.scene.camera.height, "seconds": round(seconds, 3),
                 "snapshot": snapshot}

@@ -48,7 +48,7 @@ def test_chunked_vcm_agrees_with_one_chunk():
     scene = jaxvcm.load_scene(SKY, width=16, height=12)
     res = {}
     for ch in (1, 4):
-        cfg = jaxvcm.RenderConfig(algorithm="vcm", max_depth=4, chunks=ch)
+        cfg = jaxvcm.RenderConfig(algorithm="vcm", max_depth=4).tuned(chunks=ch)
         res[ch] = _pass_means(scene, cfg, PASSES)
     (m1, s1, n1), (m4, s4, n4) = res[1], res[4]
     assert n1 == n4 == 16 * 12  # the same light paths per pass, in 4 chunks of 48
@@ -60,8 +60,8 @@ def test_chunked_vcm_agrees_with_one_chunk():
 
 def test_chunks_must_divide_the_paths():
     scene = jaxvcm.load_scene(SKY, width=16, height=12)
-    cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2, chunks=5)
-    with pytest.raises(ValueError, match=r"^config.chunks: 5 does not divide the pass's 192 "):
+    cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2).tuned(chunks=5)
+    with pytest.raises(ValueError, match=r"^config.tuning.chunks: 5 does not divide the pass's 192 "):
         render_pass(scene, pass_key(0, 0), cfg)
 
 
@@ -154,8 +154,8 @@ def test_a_1024_vcm_pass_in_a_budget_has_the_untiled_mean():
     k = _memory.chunks_for_memory(big, cfg, 192 << 20)
     assert k > 1 and (1024 * 1024) % k == 0
     f = jax.jit(render_pass, static_argnums=2)
-    img, diag = f(big, pass_key(21, 0), jaxvcm.RenderConfig(algorithm="vcm", max_depth=2,
-                                                           chunks=k), jnp.int32(0))
+    img, diag = f(big, pass_key(21, 0), jaxvcm.RenderConfig(algorithm="vcm", max_depth=2
+                                                           ).tuned(chunks=k), jnp.int32(0))
     assert not bool(diag.merge_overflow) and int(diag.nonfinite) == 0
     a = np.asarray(img, np.float64).reshape(64, -1).mean(axis=1)
     small = jaxvcm.load_scene(SKY, width=128, height=128)

@@ -17,8 +17,8 @@ from jaxvcm._materials import fresnel_dielectric
 from jaxvcm._render import _render_pass_jit, render_pass_host
 
 from .. import _analytic as A
+from .. import _scenes as S
 from .._caustic_ref import fresnel_unpolarised
-from ..transport.test_bidir import flat_water_sun
 
 K = 4.5
 D_, A_, ETA, E_ = 1.0, 0.7, 1.33, 3.0
@@ -28,8 +28,8 @@ SUN = np.array([-0.25, -1.0, 0.2]) / np.linalg.norm([-0.25, -1.0, 0.2])
 
 def scene(w=16, h=16, fov=20.0):
     # camera 0.6 m above the water (1.6 m above the floor), looking straight down
-    return jaxvcm.scene_from_dict(flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=fov,
-                                                 w=w, h=h))
+    return jaxvcm.scene_from_dict(S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=fov,
+                                                   w=w, h=h))
 
 
 def expected():
@@ -105,18 +105,18 @@ def test_merging_renders_refracted_sun_seen_from_above(alg):
 def test_merge_overflow_flag_and_host_rerun_is_exact():
     sc = scene(8, 8)
     key = jax.random.key(5)
-    small = RenderConfig(algorithm="ppm", max_depth=4, radius=0.2, merge_capacity=2)
+    small = RenderConfig(algorithm="ppm", max_depth=4, radius=0.2).tuned(merge_capacity=2)
     img_s, diag_s = _render_pass_jit(sc, key, small, 0)
     assert bool(diag_s.merge_overflow)  # far more than 2 candidates per gather point
     img_h, diag_h, used = render_pass_host(sc, key, small, 0)
-    assert not bool(diag_h.merge_overflow) and used.merge_capacity > 2
+    assert not bool(diag_h.merge_overflow) and used.tuning.merge_capacity > 2
     # one re-run: the first pass reported the room it needed (its longest candidate
     # list), and the host chose the power of two that holds it; the same key sees the
     # same candidates
     need = int(diag_s.merge_candidates)
-    assert need > 2 and used.merge_capacity == 1 << (need - 1).bit_length()
+    assert need > 2 and used.tuning.merge_capacity == 1 << (need - 1).bit_length()
     assert int(diag_h.merge_candidates) == need
-    big = dataclasses.replace(small, merge_capacity=used.merge_capacity * 4)
+    big = small.tuned(merge_capacity=used.tuning.merge_capacity * 4)
     img_b, diag_b = _render_pass_jit(sc, key, big, 0)
     assert not bool(diag_b.merge_overflow)
     # the re-run with enough room is the exact result (no silently dropped photons)
@@ -131,7 +131,7 @@ def test_photon_overflow_flag_and_host_rerun_is_exact():
     # for bit (same candidates in the same order: nothing is silently dropped)
     sc = scene(8, 8)
     key = jax.random.key(5)
-    small = RenderConfig(algorithm="vcm", max_depth=4, radius=0.2, photon_capacity=2)
+    small = RenderConfig(algorithm="vcm", max_depth=4, radius=0.2).tuned(photon_capacity=2)
     img_s, diag_s = _render_pass_jit(sc, key, small, 0)
     n = int(diag_s.merge_photons)  # the pass counts every valid photon, kept or not
     assert n > 2 and bool(diag_s.photon_overflow) and bool(diag_s.merge_overflow)
@@ -139,10 +139,10 @@ def test_photon_overflow_flag_and_host_rerun_is_exact():
     assert not bool(diag_h.merge_overflow) and not bool(diag_h.photon_overflow)
     # one re-run: a power of two holding the photons (with a quarter more); the candidate
     # capacity had room and is unchanged
-    assert used.photon_capacity == 1 << (n + n // 4 - 1).bit_length()
-    assert used.merge_capacity == small.merge_capacity and int(diag_h.merge_photons) == n
+    assert used.tuning.photon_capacity == 1 << (n + n // 4 - 1).bit_length()
+    assert used.tuning.merge_capacity == small.tuning.merge_capacity and int(diag_h.merge_photons) == n
     # the default room here is every light-vertex slot (no compaction at all)
-    big = dataclasses.replace(small, photon_capacity=0)
+    big = small.tuned(photon_capacity=0)
     img_b, diag_b = _render_pass_jit(sc, key, big, 0)
     assert not bool(diag_b.merge_overflow) and int(diag_b.merge_photons) == n
     np.testing.assert_array_equal(np.asarray(img_h), np.asarray(img_b))
@@ -173,7 +173,7 @@ def test_sphere_furnace_merging_per_path_length(alg):
     from ..transport.test_bidir import technique_stats
 
     Le, a, D = np.array([0.5, 1.0, 2.0]), np.array([0.3, 0.6, 0.9]), 4
-    sc = jaxvcm.scene_from_dict(A.sphere_furnace(Le, a, w=12, h=12))
+    sc = jaxvcm.scene_from_dict(S.sphere_furnace(Le, a, w=12, h=12))
     tech = technique_stats(sc, RenderConfig(algorithm=alg, max_depth=D, rr_depth=100,
                                             radius=0.01), passes=8)
     for k in range(1, D + 1):
@@ -217,7 +217,7 @@ def test_pass_radius_schedules_surface_and_medium(alpha):
 
 
 def _medium_furnace_doc(Le):
-    return A.medium_furnace(Le, (0.25, 0.5, 1.0), w=8, h=8)
+    return S.medium_furnace(Le, (0.25, 0.5, 1.0), w=8, h=8)
 
 
 def _ball_outside(x, r):
@@ -231,7 +231,7 @@ def _ball_outside(x, r):
 
 
 def _furnace_walks(doc, sigma_s, r, D, n=1 << 16, seed=0):
-    """Analog camera random walks in A.medium_furnace's box (purely scattering: exponential
+    """Analog camera random walks in S.medium_furnace's box (purely scattering: exponential
     flights with sigma_s, isotropic phase, throughput 1; the walls end a walk), from the
     pinhole through uniform film points, per channel. Columns, each (mean, standard error):
       q:          the walk meets no wall within D segments (the image at max_depth D is
@@ -347,7 +347,7 @@ def _disk_light_scene(h, w=8, fov=2.0):
     # A 2 cm square light facing down, h above a white floor (albedo 1); the camera sits
     # just under the light looking straight down at a ~1 mm footprint around the centre.
     return {
-        "camera": A.camera((0.0, h - 0.02, 0.0), (0.0, 0.0, 0.0), fov, w, w,
+        "camera": S.camera((0.0, h - 0.02, 0.0), (0.0, 0.0, 0.0), fov, w, w,
                            up=(0.0, 0.0, -1.0)),
         "materials": {"floor": {"type": "diffuse", "albedo": 1.0}},
         "shapes": [{"type": "rect", "center": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0],

@@ -77,12 +77,16 @@ from jaxvcm import _connect as C
 from jaxvcm import _lights as L
 from jaxvcm import _subpath as SP
 from jaxvcm import _merge
-from jaxvcm._path import Pdfs, both_partials, log_n_light_tracing, pdfs, weight
+from jaxvcm._mis import ExplicitMIS
+from jaxvcm._path import log_n_light_tracing
+
+from .._mis_oracle import Pdfs, pdfs, weight
 from jaxvcm._io._scene_file import read_scene_doc, scene_from_dict
 from jaxvcm._scene import (LIGHT_POINT, LIGHT_RECT, LIGHT_SKY, LIGHT_SUN, MAT_DIELECTRIC,
                            MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, PHASE_ISOTROPIC)
 from jaxvcm._vec import Vec3
 
+from .. import _oracles as O
 from .test_mis import oracle, oracle_vcm
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -257,11 +261,7 @@ def light_pdfs(sc, x0, w, x1):
 
 def height(w, x, z):
     """The water surface's height and its gradient (dh/dx, dh/dz) at (x, z) (NumPy)."""
-    waves = [tuple(float(c) for c in t) for t in zip(w.amp, w.kx, w.kz, w.phase0)]
-    h = float(w.level) + sum(a * np.sin(kx * x + kz * z + ph) for a, kx, kz, ph in waves)
-    hx = sum(a * kx * np.cos(kx * x + kz * z + ph) for a, kx, kz, ph in waves)
-    hz = sum(a * kz * np.cos(kx * x + kz * z + ph) for a, kx, kz, ph in waves)
-    return h, hx, hz
+    return O.heightfield(O.waves_of(w), float(w.level), x, z)
 
 
 def in_water(sc, p):
@@ -563,7 +563,7 @@ def _merges(sc, cam, lig, e):
     radius = _merge.Radii(r, r)
     etas = _merge.log_etas(radius, 1, F64)
     log_n = log_n_light_tracing(CFG_MERGE, 1, F64)
-    parts = both_partials(CFG_MERGE, pdfs(lig), pdfs(cam), e.delta, log_n, etas)
+    parts = ExplicitMIS().subpaths(CFG_MERGE, pdfs(lig), pdfs(cam), e.delta, log_n, etas)
     out = _merge.vertex_merging(sc, CFG_MERGE, cam, lig, e, radius, parts, by_photon=True)
     # (est, overflow, need) or (est, `_merge.Merged` report): _merge.py is being changed
     overflow = out[1].overflow if hasattr(out[1], "overflow") else out[1]

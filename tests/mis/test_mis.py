@@ -151,7 +151,7 @@ def test_sun_paths_are_not_hit_by_camera_rays():
 
 # ---------------------------------------------------------------- the renderer's assembly
 from jaxvcm import RenderConfig  # noqa: E402
-from jaxvcm._path import Pdfs, weight  # noqa: E402
+from .._mis_oracle import Pdfs, weight  # noqa: E402
 
 
 @st.composite

@@ -22,8 +22,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxvcm import RenderConfig
-from jaxvcm import _mis_partial as MP
-from jaxvcm._path import Pdfs, weight
+from jaxvcm._mis import _explicit as MP
+
+from .._mis_oracle import Pdfs, weight
 
 D = 7  # max depth: light subpaths of D vertices, camera subpaths of D + 1
 

@@ -33,12 +33,12 @@ from hypothesis import strategies as st
 import jaxvcm
 from jaxvcm import RenderConfig
 from jaxvcm._mis import mis_weight
-from jaxvcm._mis_recursive import mis_weight_recursive
+from jaxvcm._mis import mis_weight_recursive
 from jaxvcm import _subpath
 from jaxvcm._integrator import technique_images
 from jaxvcm._render import render_pass_host
 
-from .. import _analytic as A
+from .. import _scenes as S
 from .test_mis import LMAX, paths
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -191,14 +191,14 @@ def test_config_validates_mis_form():
 
 @pytest.mark.parametrize("alg", ["vcm"])  # vcm holds every bdpt technique too
 def test_recursive_render_equals_explicit(alg):
-    # Box of emitting walls filled with a scattering medium (tests/_analytic.py): every
+    # Box of emitting walls filled with a scattering medium (tests/_scenes.py): every
     # pixel sees emitter hits, NEE, light tracing, connections and (vcm, sphere kernels at
     # medium vertices) merging. Same scene, key and pass: every contribution is identical
     # except for its MIS weight, which the two forms compute to float32 rounding, so the
     # images agree to ~1e-6 relative (measured 1.5e-7 for both algorithms). At radius 0.1
     # (of the bounding radius) merging changes the vcm image by ~1.6 % against bdpt
     # (measured), so the merging weights take part.
-    sc = jaxvcm.scene_from_dict(A.medium_furnace(np.array([1.0, 2.0, 0.5]), (0.3, 0.6, 1.2),
+    sc = jaxvcm.scene_from_dict(S.medium_furnace(np.array([1.0, 2.0, 0.5]), (0.3, 0.6, 1.2),
                                                  w=8, h=8))
     cfg = RenderConfig(algorithm=alg, max_depth=3, radius=0.1)
     key = jax.random.key(7)
@@ -216,7 +216,7 @@ _technique_images = jax.jit(technique_images, static_argnums=2)
 
 def _carried_scene(name):
     if name == "medium_furnace":
-        return jaxvcm.scene_from_dict(A.medium_furnace(np.array([1.0, 2.0, 0.5]),
+        return jaxvcm.scene_from_dict(S.medium_furnace(np.array([1.0, 2.0, 0.5]),
                                                        (0.3, 0.6, 1.2), w=8, h=8))
     return jaxvcm.load_scene(os.path.join(ROOT, "scenes", f"{name}.toml"), width=16, height=16)
 
@@ -280,8 +280,8 @@ def test_carried_recursive_checks_the_stored_pdfs(monkeypatch):
 
     monkeypatch.setattr(_subpath, "ends", planted)
     # trace_split changes the work, not the result (a fresh trace that sees the mistake)
-    bad_e, _ = _technique_images(sc, key, dataclasses.replace(cfg, trace_split=3))
-    bad_r, _ = _technique_images(sc, key, dataclasses.replace(cfg, trace_split=3,
+    bad_e, _ = _technique_images(sc, key, cfg.tuned(trace_split=3))
+    bad_r, _ = _technique_images(sc, key, dataclasses.replace(cfg.tuned(trace_split=3),
                                                              mis_form="recursive"))
     g = np.asarray(good.images, np.float64).sum(axis=0)
     e = np.asarray(bad_e.images, np.float64).sum(axis=0)

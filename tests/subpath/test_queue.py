@@ -52,7 +52,7 @@ def test_round_width_does_not_change_the_image():
     key = jaxvcm.pass_key(0, 0)
     out = []
     for split in (1, 8):
-        cfg = RenderConfig(algorithm="bdpt", max_depth=3, trace_split=split)
+        cfg = RenderConfig(algorithm="bdpt", max_depth=3).tuned(trace_split=split)
         img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(scene, key, cfg)
         out.append((np.asarray(img), int(diag.camera_vertices), int(diag.light_vertices)))
     assert out[0][1:] == out[1][1:]
@@ -73,12 +73,13 @@ def test_queued_trace_runs_every_step_of_every_lane():
     # which must still take every step (the default, 1024 / 8 = 128 < TAIL_MIN: none).
     from jaxvcm._subpath import TAIL_MIN, tail_width
     from .. import _analytic as A
-    scene = jaxvcm.scene_from_dict(A.sphere_furnace((1.0, 1.0, 1.0), (0.5, 0.5, 0.5), w=12, h=12))
+    from .. import _scenes as S
+    scene = jaxvcm.scene_from_dict(S.sphere_furnace((1.0, 1.0, 1.0), (0.5, 0.5, 0.5), w=12, h=12))
     key = jaxvcm.pass_key(0, 0)
     out = []
     for split, tail in ((1, 8), (8, 8), (8, 2)):
-        cfg = RenderConfig(algorithm="pt", max_depth=4, spp=16, trace_split=split,
-                           trace_tail=tail)
+        cfg = RenderConfig(algorithm="pt", max_depth=4, spp=16).tuned(trace_split=split,
+                                                                     trace_tail=tail)
         assert (tail_width(MIN_ROUND, cfg, True) == TAIL_MIN) == (tail == 2)
         img, diag = jax.jit(jaxvcm.render_pass, static_argnums=2)(scene, key, cfg)
         out.append((np.asarray(img, np.float64), int(diag.camera_vertices)))
@@ -88,7 +89,7 @@ def test_queued_trace_runs_every_step_of_every_lane():
     assert tail_width(8192, RenderConfig(max_depth=11), True) is None
     assert tail_width(8192, RenderConfig(max_depth=12), False) is None  # trace_both
     with pytest.raises(ValueError, match="config.trace_tail"):
-        RenderConfig(trace_tail=-1)
+        RenderConfig().tuned(trace_tail=-1)
     for o in out[1:]:
         assert o[1] == out[0][1] == 12 * 12 * 16 * 4, (out[0][1], o[1])
         np.testing.assert_allclose(o[0], out[0][0], rtol=1e-5, atol=1e-7)
@@ -139,12 +140,44 @@ def test_first_true_equals_nonzero(density, size):
     np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
 
 
+def _dense_emitter_hits(scene, cfg, cam, verts):
+    """Emitter hits at every slot z_j (j = 1..D) of every path, each weighted by the
+    full-path oracle: {(0, j + 1): [N, C]}."""
+    from jaxvcm import _connect as connect
+    from jaxvcm._path import log_n_light_tracing
+    from jaxvcm._subpath import rows
+    from .._mis_oracle import pdfs, weight
+    D = cfg.max_depth
+    N = cam.A.shape[1]
+    js = np.arange(1, D + 1)
+    z, zp = rows(cam, js), rows(cam, js - 1)
+    lid = jnp.where(verts.escaped, connect._sky_id(scene), jnp.maximum(verts.light, 0))
+    vv = lambda f: jax.vmap(jax.vmap(f))  # noqa: E731
+    A_s, A_s1, _, _ = vv(lambda z_, zp_, l, e: connect.emitter_hit_join_pdfs(scene, z_, zp_, l, e))(
+        z, zp, lid, verts.escaped)
+    P = pdfs(cam)
+    one = jnp.ones((), A_s.dtype)
+    log_n = log_n_light_tracing(cfg, N, A_s.dtype)
+
+    def w1(j, n):  # technique (0, j + 1) of path n
+        lane = jax.tree.map(lambda a: a[:, n], P)
+        return weight(cfg, jnp.int32(0), j + 1, lane, lane, A_s[j - 1, n], A_s1[j - 1, n], one,
+                      one, jnp.zeros((), bool), verts.escaped[j - 1, n], log_n)
+
+    w = jax.vmap(lambda j: jax.vmap(lambda n: w1(j, n))(jnp.arange(N, dtype=jnp.int32)))(
+        jnp.asarray(js, jnp.int32))
+    ok = z.alive & jnp.any(verts.Le > 0, axis=-1)
+    val = jnp.where(ok[..., None], z.beta * verts.Le * w[..., None], 0.0)
+    return {(0, int(j) + 1): val[i] for i, j in enumerate(js)}
+
+
 def test_queued_emitter_hits_and_lazy_nee_uniforms():
     # PT (depth 4) on the pool under a sky at 48x48: 2304 camera paths, so the emitter-hit
     # queue (rounds of N / 8 = 288 -> MIN_ROUND items over 4 x 2304 slots) runs 9 rounds.
-    # (1) The queued emitter hits (weights from the camera partials, `_mis_partial.join`)
-    # equal the dense family (weights from the assembled full paths, `_mis`): the same
-    # contribution per (technique, path) to float32 round-off, and the sky is hit (mean > 0).
+    # (1) The queued emitter hits (weights from the camera partials at the join) equal every
+    # (vertex, path) slot evaluated densely with the full-path oracle's weight (the path
+    # assembled and weighted by `mis_weight`, tests/_mis_oracle.py): the same contribution
+    # per (technique, path) to float32 round-off, and the sky is hit (mean > 0).
     # (2) Next-event estimation hashing each item's uniforms (`Uniforms.at`) equals it
     # reading the dense table: the same numbers (`_uniforms`), so the same values exactly.
     from jaxvcm import _connect as connect, _integrator as integ
@@ -160,7 +193,7 @@ def test_queued_emitter_hits_and_lazy_nee_uniforms():
                 break
             st = stage(scene, cfg, st)
         q = connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts)
-        d = connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, None)
+        d = _dense_emitter_hits(scene, cfg, st.cends, st.cverts)
         u = Uniforms.draw(st.keys[2], (cfg.max_depth - 1, 48 * 48, 3), jnp.float32)
         nl = connect.next_event(scene, cfg, st.cends, u, st.mis_etas, st.parts)
         nd = connect.next_event(scene, cfg, st.cends, u.dense(), st.mis_etas, st.parts)

@@ -34,7 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._config import RenderConfig
+from .._config import RenderConfig
+from ._base import AbstractMIS
 
 NEG = -jnp.inf
 
@@ -365,3 +366,71 @@ def pt_weight(cfg: RenderConfig, lp_own, la_other, other_ok, conn):
     beta = 2.0 if cfg.mis == "power" else 1.0
     x = jnp.where(other_ok, beta * (la_other - lp_own), NEG)
     return jnp.where(conn, jnp.exp(0.0 - jnp.logaddexp(0.0, x)), jnp.zeros((), lp_own.dtype))
+
+
+# ---------------------------------------------------------------- the form
+def _sg(x):
+    return jax.lax.stop_gradient(x)
+
+
+class ExplicitMIS(AbstractMIS):
+    """The explicit sums of `mis_weight` split at the join: per-subpath partial sums
+    (`subpath`, O(D) per subpath) and O(1) per technique (`join`)."""
+
+    def subpaths(self, cfg, lends, cends, delta_light, log_n_lt, etas):
+        if lends is not None and cends is not None:
+            return self._both(cfg, lends, cends, delta_light, log_n_lt, etas)
+        L = C = None
+        if cends is not None:
+            C = camera(cfg, _sg(cends.A), _sg(cends.B), _sg(cends.q), cends.delta,
+                       cends.medium, _sg(log_n_lt), _sg(etas))
+        if lends is not None:
+            L = light(cfg, _sg(lends.A), _sg(lends.B), _sg(lends.q), lends.delta, lends.medium,
+                      delta_light, _sg(etas))
+        return L, C
+
+    @staticmethod
+    def _both(cfg, lig, cam, delta_light, log_n_lt, etas):
+        """(light, camera) partials in one call over both subpaths' lanes (one copy of the
+        builder in the compiled program): the light subpaths [M_l, N] are padded to the
+        camera subpaths' length [M_c, N] (the padding is never read)."""
+        Ml, N = lig.A.shape
+        Mc = cam.A.shape[0]
+
+        def cat(a, b, fill):
+            pad = jnp.full((Mc - Ml, N), fill, a.dtype)
+            return jnp.concatenate([jnp.concatenate([a, pad]), b], axis=1)
+
+        P = subpath(
+            cfg, _sg(cat(lig.A, cam.A, 1)), _sg(cat(lig.B, cam.B, 1)), _sg(cat(lig.q, cam.q, 1)),
+            cat(lig.delta, cam.delta, False), cat(lig.medium, cam.medium, False),
+            jnp.arange(2 * N) >= N,
+            jnp.concatenate([jnp.broadcast_to(delta_light, (N,)), jnp.zeros((N,), bool)]),
+            _sg(log_n_lt), _sg(etas))
+        return (jax.tree.map(lambda a: a[..., :N], P), jax.tree.map(lambda a: a[..., N:], P))
+
+    def empty_light(self, cfg, dtype, etas):
+        one = jnp.ones((1, 1), dtype)
+        f = jnp.zeros((1, 1), bool)
+        return light(cfg, one, one, one, f, f, jnp.zeros((1,), bool), _sg(etas))
+
+    def pinhole(self, cfg, log_n_lt, dtype, etas):
+        one = jnp.ones((1, 1), dtype)
+        f = jnp.zeros((1, 1), bool)
+        return camera(cfg, one, one, one, f, f, _sg(log_n_lt), _sg(etas))
+
+    def entries(self, cfg, P, n, other, index=()):
+        return entries(cfg, P, n, other, index)
+
+    def start_entries(self, cfg, A0, delta_light, leta0=0.0):
+        return start_entries(cfg, A0, delta_light, leta0)
+
+    def join(self, cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
+             log_n_lt, merge=False):
+        return join(cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
+                    log_n_lt, merge)
+
+    def join_weight(self, cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
+                    infinite_light, log_n_lt, merge=False, lanes=((), ())):
+        return join_weight(cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
+                           infinite_light, log_n_lt, merge, lanes)

@@ -127,7 +127,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._config import TECHNIQUES
+from .._config import TECHNIQUES
+from ._base import AbstractMIS
 
 
 def _recip(x):
@@ -548,3 +549,53 @@ def join(cfg, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s2, delta_light
                                jnp.where(s == 1, tech.nee & ~Ce.delta,
                                          tech.connections & ~Le.delta & ~Ce.delta)))
     return jnp.where(conn & positive, w, jnp.zeros((), dt))
+
+
+# ---------------------------------------------------------------- the form
+def _sg(x):
+    return jax.lax.stop_gradient(x)
+
+
+class RecursiveMIS(AbstractMIS):
+    """dVCM / dVC / dVM carried along each subpath as it is traced (`carry_step`, called by
+    the tracer with `trace_context`) and joined per technique (`join`)."""
+
+    def trace_context(self, cfg, etas, log_n_lt, dtype):
+        return Context(jnp.asarray(etas[0], dtype), jnp.asarray(etas[1], dtype), log_n_lt)
+
+    def camera_carry(self, cfg, n_paths, etas, dtype):
+        # nothing starts at the pinhole z_0
+        return start_carry(cfg, jnp.ones((n_paths,), dtype), False, etas[0], dtype)
+
+    def light_carry(self, cfg, emission, etas, dtype):
+        # y_0: the emitter hit starts there (tr. 31-33)
+        return start_carry(cfg, _sg(emission.pdf_pos),
+                           cfg.techniques.emitter_hits & ~emission.delta, etas[0], dtype)
+
+    def subpaths(self, cfg, lends, cends, delta_light, log_n_lt, etas):
+        def one(e):
+            return None if e is None else carried(cfg, _sg(e.mis.rec), e.mis.zero, _sg(e.q),
+                                                  e.delta, e.medium, _sg(etas))
+        return one(lends), one(cends)
+
+    def empty_light(self, cfg, dtype, etas):
+        return lone_start(cfg, (1,), dtype)
+
+    def pinhole(self, cfg, log_n_lt, dtype, etas):
+        return lone_start(cfg, (1,), dtype)
+
+    def entries(self, cfg, P, n, other, index=()):
+        return entries(cfg, P, n, other, index)
+
+    def start_entries(self, cfg, A0, delta_light, leta0=0.0):
+        return start_entries(cfg, A0, delta_light, leta0)
+
+    def join(self, cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
+             log_n_lt, merge=False):
+        return join(cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
+                    log_n_lt, merge)
+
+    def join_weight(self, cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
+                    infinite_light, log_n_lt, merge=False, lanes=((), ())):
+        return join_weight(cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
+                           infinite_light, log_n_lt, merge, lanes)

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._config import TECHNIQUES
+from .._config import TECHNIQUES
 
 
 def _sums(x, rel, cols: int):
