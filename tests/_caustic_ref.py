@@ -46,9 +46,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 
 import numpy as np
+
+from ._oracles import heightfield, heightfield_normal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,13 +80,6 @@ def _spec(v):
     return np.asarray(v, float) * np.ones(3)
 
 
-def pool_from_toml(path: str, **over) -> Pool:
-    """Parameters of a basin + water + sun TOML scene (fields of `Pool` may be overridden)."""
-    with open(path, "rb") as f:
-        d = tomllib.load(f)
-    return pool_from_dict(d, **over)
-
-
 def pool_from_dict(d: dict, **over) -> Pool:
     basin = next(s for s in d["shapes"] if s["type"] == "basin")
     sun = next(li for li in d["lights"] if li["type"] == "sun")
@@ -106,16 +100,7 @@ def pool_from_dict(d: dict, **over) -> Pool:
 # ---------------------------------------------------------------- surface
 def height(pool: Pool, x, z):
     """h, dh/dx, dh/dz (float64, elementwise)."""
-    h = np.full(np.shape(x), pool.level)
-    hx = np.zeros(np.shape(x))
-    hz = np.zeros(np.shape(x))
-    for A, kx, kz, ph in pool.waves:
-        arg = kx * x + kz * z + ph
-        h += A * np.sin(arg)
-        c = A * np.cos(arg)
-        hx += kx * c
-        hz += kz * c
-    return h, hx, hz
+    return heightfield(pool.waves, pool.level, x, z)
 
 
 def intersect_surface(pool: Pool, o, d, tol=1e-13, max_iter=100):
@@ -156,9 +141,7 @@ def intersect_surface(pool: Pool, o, d, tol=1e-13, max_iter=100):
 
 
 def surface_normal(pool: Pool, x, z):
-    _, hx, hz = height(pool, x, z)
-    n = np.stack([-hx, np.ones_like(hx), -hz], -1)
-    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+    return heightfield_normal(pool.waves, pool.level, x, z)
 
 
 def fresnel_unpolarised(cos_i, eta):

@@ -36,9 +36,9 @@ def _scene(name, size=SIZE):
 def _medium_furnace():
     import jaxvcm
 
-    from . import _analytic as A
+    from . import _scenes as S
 
-    return jaxvcm.scene_from_dict(A.medium_furnace(np.array([1.0, 2.0, 0.5]), (0.3, 0.6, 1.2),
+    return jaxvcm.scene_from_dict(S.medium_furnace(np.array([1.0, 2.0, 0.5]), (0.3, 0.6, 1.2),
                                                    w=8, h=8))
 
 

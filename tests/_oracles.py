@@ -152,11 +152,41 @@ def ref_basin(o, d, faces, tmin=0.0, tmax=np.inf):
 
 
 # ----------------------------------------------------------------------------- heightfield
+# The water surface y = h(x, z) = level + sum_i A_i sin(kx_i x + kz_i z + phase_i), in float64;
+# `waves` is [W, 4]: rows (A, kx, kz, phase). This is the one NumPy heightfield of the tests
+# (the geometry tests, the caustic reference, the join pdfs, the peer's water mesh).
+def waves_of(water) -> np.ndarray:
+    """[W, 4] float64 rows (A, kx, kz, phase) of a scene's water (its amp, kx, kz and
+    phase0 arrays)."""
+    return np.stack([np.asarray(a, np.float64).reshape(-1)
+                     for a in (water.amp, water.kx, water.kz, water.phase0)], 1)
+
+
+def heightfield(waves, level, x, z):
+    """(h, dh/dx, dh/dz) at (x, z), float64, elementwise (the analytic gradient; scalars
+    for scalar x, z)."""
+    x, z = np.asarray(x, np.float64), np.asarray(z, np.float64)
+    h = np.full(np.broadcast(x, z).shape, float(level))
+    hx, hz = np.zeros_like(h), np.zeros_like(h)
+    for A, kx, kz, ph in np.asarray(waves, np.float64).reshape(-1, 4):
+        arg = kx * x + kz * z + ph
+        h = h + A * np.sin(arg)
+        c = A * np.cos(arg)
+        hx = hx + kx * c
+        hz = hz + kz * c
+    return h[()], hx[()], hz[()]
+
+
+def heightfield_normal(waves, level, x, z) -> np.ndarray:
+    """Unit upward normal (-h_x, 1, -h_z) / |.| at (x, z): [..., 3] float64."""
+    _, hx, hz = heightfield(waves, level, x, z)
+    n = np.stack([-hx, np.ones_like(hx), -hz], -1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
 def water_h(waves, level, x, z):
-    """h(x, z) = level + sum_i A_i sin(kx_i x + kz_i z + phase_i), float64; waves [W, 4]."""
-    A, kx, kz, ph = np.asarray(waves, np.float64).T
-    arg = np.multiply.outer(x, kx) + np.multiply.outer(z, kz) + ph
-    return level + np.sum(A * np.sin(arg), axis=-1)
+    """h(x, z) alone."""
+    return heightfield(waves, level, x, z)[0]
 
 
 def water_grad_fd(waves, level, x, z, step=1e-6):

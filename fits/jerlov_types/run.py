@@ -12,7 +12,7 @@ except b_p (held at 0.2 /m) through the non-scattering approximation sigma = a +
 values clipped to >= 1e-3 /m; --init generic starts every type at a_cdom = 0.05,
 b_p = 0.2, a_flat = 0.02 (the first version; it failed for C9, see NOTES.md).
 
-Scene (per depth d): tests/_analytic.flat_water_sky - flat pool of half-width 1 km, white
+Scene (per depth d): tests/_scenes.flat_water_sky - flat pool of half-width 1 km, white
 Lambertian floor (albedo 1) at depth d, uniform sky (D65, Y = 1), camera under water 0.3 m
 above the floor looking straight down (fov 2 deg), spectral mode (hero wavelengths),
 index n(550) = 1.33468. One region = the whole image (the floor is uniform).
@@ -86,11 +86,11 @@ def model_spectra(water: dict, lam) -> dict:
 def build(depths, width, nw, water):
     import jaxvcm
     from jaxvcm import WaterModel
-    from tests import _analytic as A
+    from tests import _scenes as S
 
     sps = {}
     for d in depths:
-        sc = jaxvcm.scene_from_dict(A.flat_water_sky(d, (0.0,) * 3, 1.33, 1.0, T.CAM_HEIGHT,
+        sc = jaxvcm.scene_from_dict(S.flat_water_sky(d, (0.0,) * 3, 1.33, 1.0, T.CAM_HEIGHT,
                                                      half=1000.0, w=width, h=width))
         sps[f"{d:g}m"] = jaxvcm.spectral_scene(sc, WaterModel(**water), n_wavelengths=nw)
     return sps

@@ -90,7 +90,7 @@ def target_lab(depth) -> np.ndarray:
 
 
 def scene_dict(depth, sky, half=1000.0, size=8, fov=2.0):
-    """jaxvcm scene dict (as tests/_analytic.flat_water_sky): the pool of `depth`, a sky of
+    """jaxvcm scene dict (as tests/_scenes.flat_water_sky): the pool of `depth`, a sky of
     radiance `sky`, camera CAM_HEIGHT above the white floor looking down."""
     y = -depth + CAM_HEIGHT
     return {

@@ -23,6 +23,7 @@ import jaxvcm
 from jaxvcm import RenderConfig, SceneError
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 L = np.array([1.0, 0.5, 0.25])
 ALBEDO = 0.6
@@ -30,7 +31,7 @@ ALBEDO = 0.6
 
 def _scene(material):
     return jaxvcm.scene_from_dict({
-        "camera": A.camera((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), 20.0, 16, 16),
+        "camera": S.camera((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), 20.0, 16, 16),
         "materials": {"ball": material},
         "shapes": [{"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 1.0,
                     "material": "ball"}],
@@ -80,7 +81,7 @@ def test_light_tracing_cannot_see_glass():
     ([{"type": "background", "radiance": 0.0}], "lights[0].radiance"),
 ], ids=["sky-and-background", "dark-background"])
 def test_background_bad_input(lights, field):
-    d = {"camera": A.camera((0.0, 0.0, 4.0), (0.0, 0.0, 0.0)), "lights": lights}
+    d = {"camera": S.camera((0.0, 0.0, 4.0), (0.0, 0.0, 0.0)), "lights": lights}
     with pytest.raises(SceneError, match=field.replace("[", r"\[").replace("]", r"\]")):
         jaxvcm.scene_from_dict(d)
 

@@ -465,9 +465,8 @@ def pools():
 
 
 def water_ref(water):
-    waves = np.stack([np.asarray(a, np.float64)
-                      for a in (water.amp, water.kx, water.kz, water.phase0)], 1)
-    return O.WaterRef(waves, float(water.level), np.asarray(water.footprint, np.float64))
+    return O.WaterRef(O.waves_of(water), float(water.level),
+                      np.asarray(water.footprint, np.float64))
 
 
 def test_pool_water_is_the_documented_one(pools):

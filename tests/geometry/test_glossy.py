@@ -28,6 +28,7 @@ from jaxvcm._scene import MAT_GLOSSY
 from jaxvcm._vec import Vec3
 
 from .. import _analytic as A
+from .. import _scenes as S
 from .. import _oracles as O
 from ..sampling.test_sampling import PHI_EDGES, P_PASS, P_WRONG, direction_counts, theta_edges
 
@@ -133,7 +134,7 @@ def test_glossy_reciprocity_and_albedo(case):
 def _plane(material):
     th = math.radians(45.0)
     return jaxvcm.scene_from_dict({
-        "camera": A.camera((0.0, 4 * math.cos(th), 4 * math.sin(th)), (0.0, 0.0, 0.0), 2.0,
+        "camera": S.camera((0.0, 4 * math.cos(th), 4 * math.sin(th)), (0.0, 0.0, 0.0), 2.0,
                            16, 16),
         "materials": {"floor": material},
         "shapes": [{"type": "rect", "center": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0],

@@ -11,20 +11,9 @@ import jaxvcm
 from jaxvcm import RenderConfig
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 POOL = "scenes/pool.toml"
-
-
-def pool_dict(**over):
-    import tomllib
-
-    with open(POOL, "rb") as f:
-        d = tomllib.load(f)
-    d["camera"].update(width=12, height=12)
-    for k, v in over.items():
-        sec, key = k.split("__")
-        d[sec][key] = v
-    return d
 
 
 CASES = {
@@ -47,7 +36,7 @@ CASES = {
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_hard_case_finite(case, dtype):
-    d = pool_dict(**CASES[case])
+    d = S.shipped_doc("pool", 12, 12, **CASES[case])
     scene = jaxvcm.scene_from_dict(d, case, dtype=getattr(jnp, dtype))
     mean, se, imgs, bad = A.render_stats(scene, RenderConfig(max_depth=8, rr_depth=3), passes=4)
     assert bad == 0
@@ -60,7 +49,7 @@ def test_tir_from_below_sees_no_sky():
     # 48.75 deg for eta = 1.33) with a 2 deg fov: every camera ray reflects totally, so with
     # the floor black nothing but the emitter-free walls could be seen: the sky (radiance 1)
     # must contribute exactly 0 at path depth 2 (camera -> surface -> sky is impossible).
-    d = A.flat_water_sky(1.0, (0.1, 0.1, 0.1), 1.33, 0.0, 0.5)
+    d = S.flat_water_sky(1.0, (0.1, 0.1, 0.1), 1.33, 0.0, 0.5)
     d["camera"]["target"] = [0.0, -0.5 + np.cos(np.radians(60)), -np.sin(np.radians(60))]
     scene = jaxvcm.scene_from_dict(d)
     mean, _, imgs, bad = A.render_stats(scene, RenderConfig(max_depth=2, rr_depth=100), passes=4)

@@ -22,6 +22,7 @@ import jaxvcm
 from jaxvcm import RenderConfig, SceneError
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 L = np.array([1.0, 0.5, 0.25])
 ALBEDO = 0.6
@@ -34,7 +35,7 @@ def _scene(two_sided, behind, material=None):
     if two_sided is not None:
         shape["two_sided"] = two_sided
     return jaxvcm.scene_from_dict({
-        "camera": A.camera((0.0, 0.0, z), (0.0, 0.0, 0.0), 20.0, 8, 8),
+        "camera": S.camera((0.0, 0.0, z), (0.0, 0.0, 0.0), 20.0, 8, 8),
         "materials": {"wall": material or {"type": "diffuse", "albedo": ALBEDO}},
         "shapes": [shape],
         "lights": [{"type": "background", "radiance": L.tolist()}]})
@@ -97,7 +98,7 @@ def test_one_sided_glossy_is_black_from_behind():
     ({"type": "diffuse", "albedo": 0.5}, "no", "expected true or false"),
 ], ids=["glass", "mirror", "string"])
 def test_two_sided_bad_input_names_the_field(material, value, msg):
-    doc = {"camera": A.camera((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), 20.0, 8, 8),
+    doc = {"camera": S.camera((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), 20.0, 8, 8),
            "materials": {"wall": material},
            "shapes": [{"type": "rect", "center": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0],
                        "size": [2.0, 2.0], "material": "wall", "two_sided": value}],

@@ -15,6 +15,8 @@ from benchmarks import bench as _bench
 from benchmarks import peer_mitsuba as P
 from jaxvcm import _scene
 
+from .. import _oracles as O
+
 POOL, SKY = "scenes/pool.toml", "scenes/pool_sky.toml"
 
 
@@ -53,20 +55,6 @@ def test_kinds_match_the_package():
     assert (P.PHASE_ISOTROPIC, P.PHASE_HG) == (_scene.PHASE_ISOTROPIC, _scene.PHASE_HG)
 
 
-def _height_and_normal(w, x, z):
-    """The heightfield and its normal from the scene's wave parameters, in float64 NumPy."""
-    h = np.full_like(x, float(w.level))
-    hx, hz = np.zeros_like(x), np.zeros_like(x)
-    for a, kx, kz, ph in zip(*(np.asarray(v, np.float64) for v in (w.amp, w.kx, w.kz,
-                                                                    w.phase0))):
-        arg = kx * x + kz * z + ph
-        h += a * np.sin(arg)
-        hx += a * kx * np.cos(arg)
-        hz += a * kz * np.cos(arg)
-    n = np.stack([-hx, np.ones_like(x), -hz], -1)
-    return h, n / np.linalg.norm(n, axis=-1, keepdims=True)
-
-
 def test_water_grid_vertices_normals_and_winding(pool):
     n = 128
     V, N, F = jaxvcm.water_grid(pool, n)
@@ -74,7 +62,9 @@ def test_water_grid_vertices_normals_and_winding(pool):
     assert F.min() == 0 and F.max() == n * n - 1
     fp = np.asarray(pool.water.footprint, np.float64)
     assert np.allclose(V[[0, n * n - 1]][:, [0, 2]], [[fp[0], fp[2]], [fp[1], fp[3]]])
-    h, nrm = _height_and_normal(pool.water, V[:, 0], V[:, 2])
+    waves, level = O.waves_of(pool.water), float(pool.water.level)
+    h = O.heightfield(waves, level, V[:, 0], V[:, 2])[0]
+    nrm = O.heightfield_normal(waves, level, V[:, 0], V[:, 2])
     assert np.allclose(V[:, 1], h, atol=2e-6)  # the scene's float32 heights
     assert np.allclose(N, nrm, atol=2e-5)
     assert np.allclose(np.linalg.norm(N, axis=1), 1.0, atol=1e-12)

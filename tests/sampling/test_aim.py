@@ -38,7 +38,7 @@ from jaxvcm._render import render_pass_host
 from jaxvcm._scene import bounding_sphere
 
 from .. import _analytic as A
-from ..transport.test_bidir import flat_water_sun
+from .. import _scenes as S
 from ..merge.test_merge import D_, E_, ETA, SIGMA_A, SUN, A_
 from ..merge.test_merge import expected as expected_from_above
 
@@ -52,7 +52,7 @@ def _aimed(doc, aim, dtype=jnp.float32):
 
 def _sky_pool(aim):
     return _aimed({
-        "camera": A.camera((0.0, 0.5, 0.0), (0.0, -1.0, 0.0), 40.0, 8, 8, up=(0.0, 0.0, -1.0)),
+        "camera": S.camera((0.0, 0.5, 0.0), (0.0, -1.0, 0.0), 40.0, 8, 8, up=(0.0, 0.0, -1.0)),
         "materials": {"floor": {"type": "diffuse", "albedo": 0.5}},
         "shapes": [{"type": "rect", "center": [0.0, -1.0, 0.0], "normal": [0.0, 1.0, 0.0],
                     "size": [6.0, 6.0], "material": "floor"}],
@@ -81,7 +81,7 @@ def test_aimed_sun_crossings_follow_the_stated_density():
     # of the sphere's centre; the rim's cells are left out), + P / (A_F |d_y|) inside the
     # footprint.
     P, N = 0.7, 400_000
-    sc = _aimed(flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_), P)
+    sc = _aimed(S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_), P)
     c, _ = _crossings(sc, _emissions(sc, N, 0))
     cb, rb = (np.asarray(v, np.float64) for v in bounding_sphere(sc))
     edges = np.linspace(-1.5, 1.5, 13)
@@ -114,7 +114,7 @@ def test_aimed_pdf_integrates_to_the_right_areas(light):
     # A_F |d_y|, i.e. E[[in F] / (p A_F |d_y|)] = 1. Both per sample, averaged; a pdf that
     # forgot |d_y| or mis-weighted the mixture moves them by far more than the 4 SE allowed.
     P, N = 0.6, 200_000
-    sc = (_aimed(flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_), P) if light == "sun"
+    sc = (_aimed(S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_), P) if light == "sun"
           else _sky_pool(P))
     e = _emissions(sc, N, 1)
     c, d = _crossings(sc, e)
@@ -130,7 +130,7 @@ def test_aimed_pdf_integrates_to_the_right_areas(light):
 
 
 def test_aim_bad_input_names_the_field():
-    doc = flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_)
+    doc = S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_)
     for aim, msg in ((1.0, "below 1"), (-0.1, ">= 0"), ("x", "number")):
         with pytest.raises(SceneError, match=r"lights\[0\]\.aim"):
             _aimed(dict(doc, lights=[dict(doc["lights"][0])]), aim)
@@ -150,7 +150,7 @@ def test_aimed_merging_renders_the_refracted_sun_seen_from_above(alg, aim):
     # tests/merge/test_merge.py's scene and value (camera 0.6 m above flat water looking down at
     # the sunlit floor: E[L] = T0 / eta^2 e^{-sigma_a d} L_f), 90 % of the photons aimed at
     # the footprint or none (the same standard-error bar: 4x the paths without aiming).
-    sc = _aimed(flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=20.0), aim)
+    sc = _aimed(S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=20.0), aim)
     cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.05, spp=8 if aim else 32)
     imgs = []
     for i in range(64):
@@ -180,7 +180,7 @@ def test_aimed_light_tracing_sees_the_refracted_sun_from_under_water():
     sx, sy = rng.uniform(-th, th, 400_000), rng.uniform(-th, th, 400_000)
     cos_phi = 1.0 / np.sqrt(1 + sx**2 + sy**2)
     want = L_f * np.exp(-np.outer(h / cos_phi, sigma_a)).mean(0)
-    sc = _aimed(flat_water_sun(d, sigma_a, eta, a, h, SUN, E), 0.9)
+    sc = _aimed(S.flat_water_sun(d, sigma_a, eta, a, h, SUN, E), 0.9)
     _, _, imgs, bad = A.render_stats(sc, RenderConfig(algorithm="lt", max_depth=3, spp=8),
                                      passes=40)
     assert bad == 0
@@ -196,7 +196,7 @@ def _pool_and_ground(aim):
     # beside it, dry white ground at the water's level (x in [1, 2.5]) that the sun lights
     # directly: lines that never cross the footprint. The camera, 2 m up, sees the pool's
     # floor through the surface (left half, merging only) and the ground (right half).
-    doc = flat_water_sun(1.0, (0.3, 0.1, 0.05), 1.33, 0.7, 3.0, SUN, 3.0, fov=50.0, w=8, h=8)
+    doc = S.flat_water_sun(1.0, (0.3, 0.1, 0.05), 1.33, 0.7, 3.0, SUN, 3.0, fov=50.0, w=8, h=8)
     doc["camera"].update(position=[1.0, 2.0, 0.0], target=[1.0, -1.0, 0.0])
     doc["materials"]["ground"] = {"type": "diffuse", "albedo": 0.5}
     doc["shapes"].append({"type": "rect", "center": [1.75, 0.0, 0.0], "normal": [0.0, 1.0, 0.0],
@@ -217,7 +217,7 @@ def test_light_beside_the_pool_is_the_same_aimed_or_not(alg):
     # photon's pdfs for the gather point's path, so near the footprint's edge, where the
     # aimed pdf jumps, its bias moves with the aim; it vanishes with the radius and the
     # closed forms above hold vcm aimed where the floor is lit uniformly.)
-    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.15, spp=16, merge_capacity=2048)
+    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.15, spp=16).tuned(merge_capacity=2048)
     res = []
     for aim, seed in ((0.0, 5), (0.9, 6)):
         _, _, imgs, bad = A.render_stats(_pool_and_ground(aim), cfg,

@@ -24,6 +24,7 @@ from jaxvcm import RenderConfig, SceneError
 from jaxvcm._scene import LIGHT_POINT
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 I = np.array([2.0, 1.0, 0.5])
 ALBEDO = 0.5
@@ -32,7 +33,7 @@ LIGHT = np.array([0.3, 1.0, 0.0])
 
 def _scene(light=None):
     return jaxvcm.scene_from_dict({
-        "camera": A.camera((0.0, 1.0, 0.0), (0.0, 0.0, 0.0), 30.0, 16, 16, up=(0.0, 0.0, -1.0)),
+        "camera": S.camera((0.0, 1.0, 0.0), (0.0, 0.0, 0.0), 30.0, 16, 16, up=(0.0, 0.0, -1.0)),
         "materials": {"floor": {"type": "diffuse", "albedo": ALBEDO}},
         "shapes": [{"type": "rect", "center": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0],
                     "size": [1.0, 1.0], "material": "floor"}],

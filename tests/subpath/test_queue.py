@@ -72,7 +72,6 @@ def test_queued_trace_runs_every_step_of_every_lane():
     # lanes run a step 512 wide (`_subpath.tail_width`): here the last 256 lanes' 4 rounds,
     # which must still take every step (the default, 1024 / 8 = 128 < TAIL_MIN: none).
     from jaxvcm._subpath import TAIL_MIN, tail_width
-    from .. import _analytic as A
     from .. import _scenes as S
     scene = jaxvcm.scene_from_dict(S.sphere_furnace((1.0, 1.0, 1.0), (0.5, 0.5, 0.5), w=12, h=12))
     key = jaxvcm.pass_key(0, 0)

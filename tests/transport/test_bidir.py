@@ -4,7 +4,6 @@ values and against each other (within K standard errors from independent passes)
 from __future__ import annotations
 
 import functools
-import tomllib
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +16,7 @@ from jaxvcm import technique_images
 from jaxvcm._materials import fresnel_dielectric
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 K = 4.5
 ALGS = ["pt", "lt", "bdpt"]
@@ -56,7 +56,7 @@ def test_sphere_furnace_all_algorithms_per_path_length(alg, spp):
     # averaged over spp again (an earlier bug made LT spp times too dark).
     Le, a, D = np.array([0.5, 1.0, 2.0]), np.array([0.3, 0.6, 0.9]), 4
     w = 16 if spp == 1 else 8
-    scene = jaxvcm.scene_from_dict(A.sphere_furnace(Le, a, w=w, h=w))
+    scene = jaxvcm.scene_from_dict(S.sphere_furnace(Le, a, w=w, h=w))
     tech = technique_stats(scene, RenderConfig(algorithm=alg, max_depth=D, rr_depth=100,
                                                spp=spp),
                            passes=24 if alg == "lt" else 8)
@@ -78,7 +78,7 @@ def test_medium_furnace_bidirectional(alg):
     # splats carry 1/d^2 with infinite variance (standard errors are not trustworthy);
     # inside BDPT the MIS weights tame that term.
     Le = np.array([1.0, 2.0, 0.5])
-    scene = jaxvcm.scene_from_dict(A.medium_furnace(Le, (0.1, 0.25, 0.5), w=12, h=12))
+    scene = jaxvcm.scene_from_dict(S.medium_furnace(Le, (0.1, 0.25, 0.5), w=12, h=12))
     _, _, imgs, bad = A.render_stats(scene, RenderConfig(algorithm=alg, max_depth=16,
                                                          rr_depth=100), passes=8)
     assert bad == 0
@@ -111,13 +111,6 @@ def test_technique_images_sum_to_the_bdpt_image():
 def block_means(imgs, b=4):
     P, H, W, C = imgs.shape
     return imgs.reshape(P, b, H // b, b, W // b, C).mean(axis=(2, 4))  # [P, b, b, C]
-
-
-def pool_scene(name, w, h, **over):
-    with open(f"scenes/{name}.toml", "rb") as f:
-        d = tomllib.load(f)
-    d["camera"].update(width=w, height=h, **over)
-    return jaxvcm.scene_from_dict(d, name)
 
 
 def assert_algorithms_agree(scene, algs, max_depth, seed, passes=24, blocks=4, what="",
@@ -171,12 +164,12 @@ def test_pt_bdpt_and_vcm_agree_on_pool(name):
     # checked at the 5 % bar against ppm, paired, by test_vcm_and_ppm_agree_on_pool, and the
     # pool's geometry and water by pool_sky here and the caustic reference
     # (tests/transport/test_caustics.py).
+    scene = S.shipped_scene(name, 16, 16)
     if name == "pool_sky":
-        assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt", "vcm"), 4, seed=11,
-                                passes=32, what=name)
+        assert_algorithms_agree(scene, ("pt", "bdpt", "vcm"), 4, seed=11, passes=32, what=name)
     else:
-        assert_algorithms_agree(pool_scene(name, 16, 16), ("pt", "bdpt", "vcm"), 4, seed=11,
-                                passes=16, spp=1, what=name, heavy=("bdpt", "vcm"))
+        assert_algorithms_agree(scene, ("pt", "bdpt", "vcm"), 4, seed=11, passes=16, spp=1,
+                                what=name, heavy=("bdpt", "vcm"))
 
 
 def test_vcm_and_ppm_agree_on_pool():
@@ -212,9 +205,8 @@ def test_vcm_and_ppm_agree_on_pool():
     # measured red value + 10 of its SE; with 4 SE (0.5-1 %) the tolerance is 2.5-3 %, so a
     # 5 % error of either image, either way, fails (planted, 4 seeds: beyond the tolerance
     # by 3-27 SE in red, >= 10 SE in green and blue).
-    scene = pool_scene("pool", 16, 16)
-    with open("scenes/pool.toml", "rb") as f:
-        Le = float(np.max(tomllib.load(f)["lights"][0]["radiance"]))
+    scene = S.shipped_scene("pool", 16, 16)
+    Le = float(np.max(S.shipped_doc("pool")["lights"][0]["radiance"]))
     spp, bias = 64, 0.02
     imgs = {}
     for alg in ("vcm", "ppm"):
@@ -240,15 +232,16 @@ def test_lt_and_bdpt_agree_on_directly_lit_wall():
     # pool_wall: camera above the water looking at the tall wall lit by the low sun, both
     # directly and by light reflected off the water (a caustic path sun -> water -> wall ->
     # camera that only light tracing can sample). Crop to the wall above the water line.
-    scene = pool_scene("pool_wall", 16, 16, target=[0.0, 0.9, -1.0], fov=30)
+    scene = S.shipped_scene("pool_wall", 16, 16, camera__target=[0.0, 0.9, -1.0],
+                             camera__fov=30)
     assert_algorithms_agree(scene, ("lt", "bdpt"), 4, seed=21, what="pool_wall")
 
 
 def test_lt_and_bdpt_agree_on_sun_caustics_from_under_water():
     # pool_sun seen from under the water: the floor's caustics (sun -> wavy surface ->
     # floor -> camera) are made by light tracing alone; BDPT must match it.
-    scene = pool_scene("pool_sun", 16, 16, position=[0.3, -0.6, 0.5], target=[-0.2, -1.2, -0.4],
-                       fov=60)
+    scene = S.shipped_scene("pool_sun", 16, 16, camera__position=[0.3, -0.6, 0.5],
+                            camera__target=[-0.2, -1.2, -0.4], camera__fov=60)
     # light tracing's caustics are noisy: 24 passes of 64 spp for an SE near 1 %
     lt = assert_algorithms_agree(scene, ("lt", "bdpt", "vcm"), 4, seed=31, blocks=2,
                                  passes=24, spp=64, what="pool_sun under water")
@@ -256,19 +249,6 @@ def test_lt_and_bdpt_agree_on_sun_caustics_from_under_water():
 
 
 # ---------------------------------------------------------------- flat water, sun, camera under water
-def flat_water_sun(depth, sigma_a, ior, albedo, cam_height, sun_dir, E, fov=70.0, w=16, h=16):
-    return {
-        "camera": A.camera((0.0, -depth + cam_height, 0.0), (0.0, -depth - 1.0, 0.0), fov, w, h,
-                           up=(0.0, 0.0, -1.0)),
-        "materials": {"floor": {"type": "diffuse", "albedo": albedo}},
-        "shapes": [{"type": "rect", "center": [0.0, -depth, 0.0], "normal": [0.0, 1.0, 0.0],
-                    "size": [2.0, 2.0], "material": "floor"}],
-        "water": {"level": 0.0, "sigma_a": list(sigma_a), "sigma_s": 0.0, "ior": ior,
-                  "footprint": [-1.0, 1.0, -1.0, 1.0], "floor": -depth - 0.01},
-        "lights": [{"type": "sun", "direction": list(sun_dir), "irradiance": E}],
-    }
-
-
 @pytest.mark.parametrize("alg", ["lt", "bdpt"])
 def test_flat_water_sun_floor_seen_from_under_water(alg):
     # Sun (irradiance E on a plane normal to it) over flat water; camera under water,
@@ -291,7 +271,7 @@ def test_flat_water_sun_floor_seen_from_under_water(alg):
     T = 1.0 - float(fresnel_dielectric(cos_i, eta)[0])
     cos_t = np.sqrt(1 - (1 - cos_i**2) / eta**2)
     L_f = a / np.pi * E * cos_i * T * np.exp(-sigma_a * d / cos_t)
-    scene = jaxvcm.scene_from_dict(flat_water_sun(d, sigma_a, eta, a, h, sun, E))
+    scene = jaxvcm.scene_from_dict(S.flat_water_sun(d, sigma_a, eta, a, h, sun, E))
     # expected image mean: pinhole directions uniform over the film (jittered pixels)
     rng = np.random.default_rng(0)
     th = np.tan(np.radians(70.0) / 2)
@@ -312,7 +292,7 @@ def test_flat_water_sun_floor_seen_from_under_water(alg):
 
 
 def test_pt_cannot_render_the_refracted_sun():
-    d = flat_water_sun(1.0, (0.3, 0.1, 0.05), 1.33, 0.7, 0.6, (-0.25, -1.0, 0.2), 3.0, w=8, h=8)
+    d = S.flat_water_sun(1.0, (0.3, 0.1, 0.05), 1.33, 0.7, 0.6, (-0.25, -1.0, 0.2), 3.0, w=8, h=8)
     scene = jaxvcm.scene_from_dict(d)
     _, _, imgs, _ = A.render_stats(scene, RenderConfig(algorithm="pt", max_depth=3), passes=2)
     assert np.all(imgs == 0.0)
@@ -337,12 +317,7 @@ def test_hard_cases_finite_bidirectional(case, alg):
     # vcm at a huge (0.5 R_bound) merging radius: every camera vertex merges with most
     # photons and eta is large, pushing the MIS weights to their limit; every value stays
     # finite (a vanishing radius is tested in test_merge::test_merging_extreme_radii).
-    with open("scenes/pool.toml", "rb") as f:
-        d = tomllib.load(f)
-    d["camera"].update(width=10, height=10)
-    for k, v in HARD[case].items():
-        sec, key = k.split("__")
-        d[sec][key] = v
+    d = S.shipped_doc("pool", 10, 10, **HARD[case])
     if case == "grazing_connections":
         d["lights"][0].update(center=[0.0, 0.11, -0.9], normal=[0.0, -0.05, 1.0])
     scene = jaxvcm.scene_from_dict(d, case)

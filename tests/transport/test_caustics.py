@@ -35,8 +35,6 @@ without aiming at 4P = 96).
 
 from __future__ import annotations
 
-import tomllib
-
 import numpy as np
 import pytest
 
@@ -45,6 +43,7 @@ from jaxvcm import RenderConfig
 from jaxvcm._render import render_pass_host
 
 from .. import _caustic_ref as R
+from .. import _scenes as S
 
 K = 4.5
 SIZE = 32
@@ -55,7 +54,6 @@ AIM = 0.9  # fraction of the sun's photons aimed at the water's footprint (VCM r
 RADIUS = 0.02  # first-pass merging radius, fraction of the scene's bounding radius
 ALPHA = RenderConfig().alpha
 REF_ACC = 0.02
-SCENE = "scenes/pool_sun.toml"
 
 # Cameras looking straight down: under the water (0.75 m above the floor, fov 70: a
 # 1.05 m square of floor that includes the edge of the x = +1 wall's shadow) and above it
@@ -76,12 +74,8 @@ def camera(view, size=SIZE):
 
 
 def scene_doc(view, size=SIZE):
-    with open(SCENE, "rb") as f:
-        d = tomllib.load(f)
-    d["water"]["sigma_s"] = 0.0
-    d["materials"]["wall"]["albedo"] = 0.0
-    d["camera"] = camera(view, size)
-    return d
+    return S.shipped_doc("pool_sun", water__sigma_s=0.0, materials__wall__albedo=0.0,
+                         camera=camera(view, size))
 
 
 def surface_radii(scene, radius, passes):

@@ -80,6 +80,7 @@ import jaxvcm
 from jaxvcm import RenderConfig
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 K = 4.0
 W = H = 8
@@ -107,7 +108,7 @@ def pool(view: str, sigma_s_scale: float = 1.0) -> dict:
                 "up": [0.0, 1.0, 0.0], "material": "white"}
 
     return {
-        "camera": A.camera(pos, target, 36.0, W, H, up=up),
+        "camera": S.camera(pos, target, 36.0, W, H, up=up),
         "materials": {"white": {"type": "diffuse", "albedo": 0.6}},
         "shapes": [
             {"type": "rect", "center": [0.0, -0.6, 0.0], "normal": [0.0, 1.0, 0.0],

@@ -37,6 +37,7 @@ from jaxvcm._spectral import (
 from jaxvcm._reference import sky_floor_radiance
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 
 @functools.partial(jax.jit, static_argnums=(2,))
@@ -174,7 +175,7 @@ def test_beer_lambert_per_wavelength(ior):
     # eta = 1 every path refracts. Le and a_w are interpolated here from the emission table
     # and the Pope & Fry CSV with NumPy. The wavelengths must be the hero + k * 340/8 nm.
     d = 1.0
-    scene = jaxvcm.scene_from_dict(A.flat_water_slab(d, (0.0,) * 3, ior, (1.0,) * 3, w=8, h=8))
+    scene = jaxvcm.scene_from_dict(S.flat_water_slab(d, (0.0,) * 3, ior, (1.0,) * 3, w=8, h=8))
     ss = spectral_scene(scene, WaterModel(pure_scattering=False), n_wavelengths=8, ior="scene")
     xyz, diag = jax.jit(render_pass_spectral, static_argnums=2)(
         ss, jaxvcm.pass_key(3, 0), RenderConfig(max_depth=4))
@@ -206,7 +207,7 @@ def underwater_emitter(L):
     """Camera in the water, L metres above an upward white (D65) emitting floor, looking
     straight down (fov 1 deg); the water surface is 0.5 m above the camera."""
     return {
-        "camera": A.camera((0.0, 0.0, 0.0), (0.0, -1.0, 0.0), 1.0, 4, 4, up=(0.0, 0.0, -1.0)),
+        "camera": S.camera((0.0, 0.0, 0.0), (0.0, -1.0, 0.0), 1.0, 4, 4, up=(0.0, 0.0, -1.0)),
         "lights": [{"type": "rect", "center": [0.0, -L, 0.0], "normal": [0.0, 1.0, 0.0],
                     "size": [4.0, 4.0], "radiance": [1.0, 1.0, 1.0]}],
         "water": {"level": 0.5, "sigma_a": 0.0, "sigma_s": 0.0, "ior": 1.33,
@@ -281,7 +282,7 @@ def test_rgb_and_spectral_agree_on_grey_media():
     # and linear sRGB_spec = (Y_rgb, Y_rgb, Y_rgb) (D65 -> white to 7e-4). Per pass the
     # difference spectral - RGB (same core key) is the wavelength noise alone: its SE over 64
     # passes is 0.1-0.3 % of the value (must be < 1.25 %, so 5 % is 4 SE away).
-    d = A.flat_water_sky(1.0, (0.2,) * 3, 1.33, 0.6, 0.3)
+    d = S.flat_water_sky(1.0, (0.2,) * 3, 1.33, 0.6, 0.3)
     d["water"]["sigma_s"] = 0.3
     scene = jaxvcm.scene_from_dict(d)
     ss = spectral_scene(scene, WaterModel(a_flat=0.2, b_p=0.3, n_p=0.0, pure_absorption=False,
@@ -319,7 +320,7 @@ def test_spectral_scattering_furnace():
     # for every pixel and wavelength. Depth truncation: a wall is reached unscattered with
     # probability >= exp(-0.63 * 1.732) = 0.34 per segment, P(none in 32) < 2e-6 (negligible
     # against the standard error).
-    d = A.medium_furnace((1.0, 1.0, 1.0), (0.0,) * 3)
+    d = S.medium_furnace((1.0, 1.0, 1.0), (0.0,) * 3)
     scene = jaxvcm.scene_from_dict(d)
     ss = spectral_scene(scene, WaterModel(b_p=0.3, n_p=2.0, g=0.9, pure_absorption=False,
                                           pure_scattering=False), n_wavelengths=8, ior="scene")
@@ -331,7 +332,7 @@ def test_spectral_scattering_furnace():
                                                       0.3 * (720 / 550) ** -2], rtol=1e-5)
     assert abs(float(sc.water.g) - 0.9) < 1e-6
     # phase="scene" keeps the RGB scene's phase and its g instead (here HG, g = -0.3)
-    keep = spectral_scene(jaxvcm.scene_from_dict(A.medium_furnace((1.0,) * 3, (0.1,) * 3,
+    keep = spectral_scene(jaxvcm.scene_from_dict(S.medium_furnace((1.0,) * 3, (0.1,) * 3,
                                                                    phase="hg", g=-0.3)),
                           WaterModel(b_p=0.3, g=0.9), phase="scene")
     kc = keep.at_wavelengths(jnp.asarray([500.0], jnp.float32))
@@ -353,7 +354,7 @@ def test_spectral_scattering_furnace():
 def test_default_ior_is_daimon_masumura_550():
     # ior="data": one index for the whole scene, n(550 nm) = 1.33468 (Sellmeier at 20 C),
     # set on both the water body and the surface's dielectric material.
-    scene = jaxvcm.scene_from_dict(A.flat_water_slab(1.0, (0.0,) * 3, 1.33, (1.0,) * 3))
+    scene = jaxvcm.scene_from_dict(S.flat_water_slab(1.0, (0.0,) * 3, 1.33, (1.0,) * 3))
     sc = spectral_scene(scene).at_wavelengths(jnp.asarray([450.0, 650.0], jnp.float32))
     assert abs(float(sc.water.ior) - 1.33468) < 1e-4
     assert float(sc.materials.ior[sc.water.mat]) == float(sc.water.ior)
@@ -440,7 +441,7 @@ def _slab_dispersion(mode, alg="pt"):
     dispersion `mode`: (wavelengths [C], per-pixel radiance [64, C], the expected refracted
     radiance Le exp(-a_w d) / n(lambda)^2 per wavelength [C], n(lambda) [C])."""
     d = 1.0
-    scene = jaxvcm.scene_from_dict(A.flat_water_slab(d, (0.0,) * 3, 1.33, (1.0,) * 3, w=8, h=8))
+    scene = jaxvcm.scene_from_dict(S.flat_water_slab(d, (0.0,) * 3, 1.33, (1.0,) * 3, w=8, h=8))
     ss = spectral_scene(scene, WaterModel(pure_scattering=False), n_wavelengths=8,
                         dispersion=mode)
     _, diag = jax.jit(render_pass_spectral, static_argnums=2)(
@@ -601,7 +602,7 @@ def test_white_floor_under_d65_sky_matches_colour_science(depth):
     # 0.5 at 1024 passes, a bias; 0.08 with the 1 km pool). 256 passes of 8 wavelengths on
     # 8x8 pixels: measured dE2000 0.14 (1 m) and 0.14 (4 m). Bound: dE2000 < 1.
     h, D = 0.3, 16
-    scene = jaxvcm.scene_from_dict(A.flat_water_sky(depth, (0.0,) * 3, 1.33, 1.0, h,
+    scene = jaxvcm.scene_from_dict(S.flat_water_sky(depth, (0.0,) * 3, 1.33, 1.0, h,
                                                     half=1000.0, w=8, h=8))
     ss = spectral_scene(scene, WaterModel(pure_scattering=False), n_wavelengths=8)
     n = float(ss.ior)
@@ -632,7 +633,7 @@ def test_rgb_and_spectral_agree_on_grey_media_vcm():
     # medium, 4 passes of 4x4 pixels): every wavelength channel equals the RGB radiance
     # times Le(lambda_c) (measured max deviation 3e-7 of the largest value), so the hash
     # grid, splats and merges handle C = 8 channels like C = 3.
-    d = A.flat_water_sky(1.0, (0.2,) * 3, 1.33, 0.6, 0.3)
+    d = S.flat_water_sky(1.0, (0.2,) * 3, 1.33, 0.6, 0.3)
     d["water"]["sigma_s"] = 0.3
     scene = jaxvcm.scene_from_dict(d)
     ss = spectral_scene(scene, WaterModel(a_flat=0.2, b_p=0.3, n_p=0.0, pure_absorption=False,

@@ -15,6 +15,7 @@ import jaxvcm
 from jaxvcm import RenderConfig
 
 from .. import _analytic as A
+from .. import _scenes as S
 
 K = 4.5  # standard errors allowed (two-sided p ~ 7e-6 per channel under normality)
 
@@ -52,7 +53,7 @@ def test_diffuse_sphere_furnace(config, albedo):
     # (RR does not change the expectation). D = 8, a = 0.9: 5.6953 Le.
     Le = np.array([0.5, 1.0, 2.0])
     a = np.array(albedo)
-    scene = jaxvcm.scene_from_dict(A.sphere_furnace(Le, a))
+    scene = jaxvcm.scene_from_dict(S.sphere_furnace(Le, a))
     mean, se = A.pooled(A.render_stats(scene, config, passes=16)[2])
     D = config.max_depth
     expected = Le * (1 - a ** D) / (1 - a)
@@ -64,7 +65,7 @@ def test_sphere_furnace_detects_wrong_depth():
     # above is able to fail (difference Le a^D ~ 0.86 Le for a = 0.9 vs se ~ 0.01).
     Le, a = np.array([1.0, 1.0, 1.0]), np.array([0.9, 0.9, 0.9])
     cfg = RenderConfig(max_depth=8, rr_depth=100)
-    scene = jaxvcm.scene_from_dict(A.sphere_furnace(Le, a))
+    scene = jaxvcm.scene_from_dict(S.sphere_furnace(Le, a))
     mean, se = A.pooled(A.render_stats(scene, cfg, passes=8)[2])
     for D in (7, 9):
         wrong = Le * (1 - a ** D) / (1 - a)
@@ -84,7 +85,7 @@ def test_scattering_medium_furnace(phase, g, mis):
     # segments) <= 0.58^32 = 3e-8 relative, far below the standard error. 16 passes: the
     # SE is 0.19-0.87 % of Le (blue, the dimmest, the largest; 8 passes left it at 1.17 %).
     Le = np.array([1.0, 2.0, 0.5])
-    scene = jaxvcm.scene_from_dict(A.medium_furnace(Le, (0.1, 0.25, 0.5), phase=phase, g=g))
+    scene = jaxvcm.scene_from_dict(S.medium_furnace(Le, (0.1, 0.25, 0.5), phase=phase, g=g))
     cfg = RenderConfig(mis=mis, max_depth=32, rr_depth=100)
     mean, se, imgs, bad = A.render_stats(scene, cfg, passes=16)
     assert bad == 0
@@ -96,7 +97,7 @@ def test_medium_furnace_with_roulette_and_absorption_fails_le():
     # Control: with absorption (sigma_a = 0.3 /m) the furnace must come out darker than Le
     # by far more than its standard error (the test above can fail).
     Le = np.array([1.0, 1.0, 1.0])
-    scene = jaxvcm.scene_from_dict(A.medium_furnace(Le, (0.1, 0.25, 0.5), sigma_a=(0.3,) * 3))
+    scene = jaxvcm.scene_from_dict(S.medium_furnace(Le, (0.1, 0.25, 0.5), sigma_a=(0.3,) * 3))
     _, _, imgs, _ = A.render_stats(scene, RenderConfig(max_depth=32, rr_depth=4), passes=4)
     m, s = A.pooled(imgs)
     assert np.all(Le - m > 10 * s)
@@ -115,7 +116,7 @@ def test_beer_lambert_slab(ior):
     d = 1.0
     sigma_a = np.array([0.2, 0.5, 1.0])
     Le = np.array([2.0, 2.0, 2.0])
-    scene = jaxvcm.scene_from_dict(A.flat_water_slab(d, sigma_a, ior, Le))
+    scene = jaxvcm.scene_from_dict(S.flat_water_slab(d, sigma_a, ior, Le))
     _, _, imgs, bad = A.render_stats(scene, RenderConfig(max_depth=4), passes=64)
     assert bad == 0
     m, s = A.pooled(imgs)
@@ -172,7 +173,7 @@ def test_flat_water_sky_floor_radiance():
     # passes are cheap next to the compilation, +15 % of the test's time).
     depth, h, albedo, ior, D = 1.0, 0.3, 0.8, 1.33, 16
     sigma_a = np.array([0.05, 0.2, 0.6])
-    scene = jaxvcm.scene_from_dict(A.flat_water_sky(depth, sigma_a, ior, albedo, h))
+    scene = jaxvcm.scene_from_dict(S.flat_water_sky(depth, sigma_a, ior, albedo, h))
     cfg = RenderConfig(max_depth=D, rr_depth=100)
     _, _, imgs, bad = A.render_stats(scene, cfg, passes=480, batch=16)
     assert bad == 0
