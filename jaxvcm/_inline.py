@@ -3,22 +3,22 @@ estimation (s = 1) at each vertex as the trace round makes it, added into the pa
 pixel value; no vertex records, no MIS tables, no technique queues.
 
 With only PT's two techniques the explicit MIS sum of a technique at z_j has two terms,
-both pdfs of the path's last vertex (`_mis_partial.pt_weight`, derived there from the
+both pdfs of the path's last vertex (`_mis._explicit.pt_weight`, derived there from the
 general `join`): the camera's pdf of z_j with its roulette (carried one vertex along the
 walk: `Carry`) against the light's pdf of the point. So the whole weight is known when
 z_j is made, and a pass that only wants the image (`_integrator.integrate`) needs nothing
 of the vertex once the round has moved on. The recorded route (`subpath.trace` records
-[D, N], `_path.camera_partials`, the queued `_connect` families) paid per row of D for
-every lane: the record buffer's writes, the partial tables, the queues' masks and their
-[D, N, C] outputs (PT at 256x256: depth 16 1.35x its depth 8 time; docs/design.md,
-"Speed, eleventh step"). It stays for `technique_images` (one image per technique), for
-the recursive MIS form (the independent oracle) and for every other algorithm.
+[D, N], the per-subpath MIS state, the queued `_connect` techniques) costs every lane
+per row of D: the record buffer's writes, the partial tables, the queues' masks and their
+[D, N, C] outputs; this route has none of them (docs/design/performance.md). The
+recorded route serves `technique_images` (one image per technique), the recursive MIS
+form and every other algorithm.
 
 Same samples, same image: every value is computed from the same quantities by the same
 functions as on the recorded route (`_connect.emitter_hit_join_pdfs`, `nee_join_pdfs`,
 the light sample's uniforms `u_nee[j - 1, n]`), and the weight equals `join`'s to the bit;
-only the order in which a path's techniques are added differs (float32 round-off;
-tests/test_inline.py compares the two routes at fixed keys).
+only the order in which a path's techniques are added differs (float32 round-off; the
+inline tests, tests/subpath/test_inline.py, compare the two routes at fixed keys).
 """
 
 from __future__ import annotations
@@ -44,10 +44,10 @@ NEE_SPLIT = 8  # rounds per sweep of a trace round's shadow-ray queue
 
 
 class Carry(NamedTuple):
-    """Per camera lane, carried by the walk (`subpath.WalkState.pt`): the roulette
+    """Per camera lane, carried by the walk (`subpath.WalkState.carry`): the roulette
     survival probability applied on the way to the next vertex (rr(j, q_j) leaving z_j:
-    `subpath.step`'s q) and whether a pdf of the path so far is zero (`_mis_partial`'s
-    `zero`: the techniques at later vertices are then impossible)."""
+    `subpath.step`'s q) and whether a pdf of the path so far is zero (`_mis._explicit`'s
+    `Partials.zero`: the techniques at later vertices are then impossible)."""
 
     q_in: Array
     zero: Array
@@ -81,7 +81,7 @@ def start(s0: subpath.WalkState) -> subpath.WalkState:
     """The camera lanes' start states with the carry of z_0 (the pinhole: no roulette
     before z_1, its pdf 1)."""
     one = jnp.ones_like(s0.pdf_w)
-    return s0._replace(pt=Carry(one, jnp.zeros(one.shape, bool)))
+    return s0._replace(carry=Carry(one, jnp.zeros(one.shape, bool)))
 
 
 def uniforms(u_nee):
@@ -97,7 +97,7 @@ def estimate(scene: Scene, cfg: RenderConfig, u_nee, kg, g, live, s: subpath.Wal
     """The techniques at the vertices z_j (j = kg + 1) just made by a trace round for its
     lanes g ([W]; `live`: the lane is real, not padding): s = 0 if z_j sees emission, s = 1
     from z_j (j <= max_depth - 1). `s` / `s_new`: the lanes' walk states before and after
-    the step (s.pt: the carry up to z_{j-1}); `u_nee`: the light samples' uniforms
+    the step (s.carry: the carry up to z_{j-1}); `u_nee`: the light samples' uniforms
     [D - 1, N, 3] (`uniforms`), None without next-event estimation.
     Returns (s_new with the carry moved on to z_j, each lane's contribution [W, C] with
     non-finite elements zeroed, their count, the number of live vertices)."""
@@ -111,11 +111,11 @@ def estimate(scene: Scene, cfg: RenderConfig, u_nee, kg, g, live, s: subpath.Wal
     real = v.alive & live
 
     # ---- the camera side of z_j: its pdf with the roulette before it, the zero flag ----
-    # (`_mis_partial.subpath`: local = B_j rr(j - 1, q_{j-1}); zero[j + 1])
-    local = v.pdf_fwd * s.pt.q_in
-    zero = s.pt.zero | ~(local > 0)
+    # (`_mis._explicit.subpath`: local = B_j rr(j - 1, q_{j-1}); zero[j + 1])
+    local = v.pdf_fwd * s.carry.q_in
+    zero = s.carry.zero | ~(local > 0)
     lp = lpos(local, 0.0)
-    s_new = s_new._replace(pt=Carry(subpath.rr(j, v.q, cfg), zero))
+    s_new = s_new._replace(carry=Carry(subpath.rr(j, v.q, cfg), zero))
     z = _Z(v.p, v.n, v.wo, v.kind, v.mat, v.kind == subpath.KIND_MEDIUM, v.seg_water)
     zp = _Prev(s.p_prev, s.n_prev, s.prev_medium)
 

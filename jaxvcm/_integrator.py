@@ -48,7 +48,7 @@ from ._vec import Vec3
 
 
 class Technique(NamedTuple):
-    """Label of one technique image.
+    """The label of one technique image: its kind and its (s, t).
 
     kind "connection": the (s, t) technique (s light vertices, t camera vertices;
          s = 0 emitter hits, s = 1 next-event estimation, t = 1 light tracing);
@@ -56,13 +56,12 @@ class Technique(NamedTuple):
          (s = 0: any number of light vertices), or with `technique_images(merge_lengths=True)`
          of photon y_{s-1} only (s >= 2: a path of s + t - 2 segments);
     kind "gather": ppm's photon gather (s = t = 0);
-    kind "sum": the connections (s, t >= 2) summed per path (s = 2, t = 0), in a pass
-         that wants only the image (`integrate`): their queue adds each item into its
-         path's row (the D^2 / 2 techniques' [N, C] buffers were a cost per depth^2;
-         emitter hits and next-event estimation, D each, stay one value per technique:
-         summed they cost VCM's program more compile time than they saved); and PT's
-         emitter hits and next-event estimation summed per path inside the camera trace
-         (s = 0, t = 0; `_inline`).
+    kind "sum": in a pass that wants only its image (`integrate`), the connections
+         (s, t >= 2) summed per path (s = 2, t = 0): their queue adds each item into its
+         path's row, so none of the D^2 / 2 techniques writes an [N, C] buffer of its own
+         (emitter hits and next-event estimation, D techniques each, keep one value per
+         technique); and PT's emitter hits and next-event estimation summed per path
+         inside the camera trace (s = 0, t = 0; `_inline`).
     """
 
     kind: str
@@ -71,8 +70,11 @@ class Technique(NamedTuple):
 
 
 class TechniqueImages(eqx.Module):
-    """The weighted contribution of every technique of a pass, one [H, W, C] image each
-    (leading batch axes allowed, e.g. under vmap over keys)."""
+    """The weighted contribution of every technique of a pass, one image each.
+
+    `images` [..., K, H, W, C] in the order of `labels` (leading batch axes allowed, e.g.
+    under vmap over keys); indexing with a `Technique` label reads one image, `items()`
+    lists (label, image) pairs."""
 
     labels: tuple[Technique, ...] = eqx.field(static=True)
     images: Float[Array, "*batch K H W C"]
@@ -211,7 +213,7 @@ def camera_rays(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, imp, _ = jax.vmap(lambda w: camera.camera_importance(scene, w))(d)
     c0 = jax.vmap(subpath.camera_start, in_axes=(None, 0, 0, 0))(
         scene, o, d, jax.lax.stop_gradient(imp))
-    c0 = c0._replace(mis=mis_form(cfg).camera_carry(cfg, N, st.mis_etas, dt))
+    c0 = c0._replace(carry=mis_form(cfg).camera_carry(cfg, N, st.mis_etas, dt))
     uc = Uniforms.draw(st.keys[1], (D, N, subpath.N_UNIFORMS), dt)  # hashed where used
     return dataclasses.replace(st, origins=o, cam_start=c0, cam_u=uc)
 
@@ -222,7 +224,7 @@ def light_emission(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     e = jax.vmap(lights.sample_emission, in_axes=(None, 0))(
         scene, Uniforms.draw(st.keys[3], (1, N, 5), dt).dense()[0])
     l0 = jax.vmap(subpath.light_start, in_axes=(None, 0))(scene, e)
-    l0 = l0._replace(mis=mis_form(cfg).light_carry(cfg, e, st.mis_etas, dt))
+    l0 = l0._replace(carry=mis_form(cfg).light_carry(cfg, e, st.mis_etas, dt))
     ul = Uniforms.draw(st.keys[4], (_light_steps(cfg), N, subpath.N_UNIFORMS), dt)
     return dataclasses.replace(st, emission=e, light_start=l0, light_u=ul)
 
@@ -236,8 +238,8 @@ def subpaths(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     cverts = lverts = cends = lends = None
     ctx = mis_form(cfg).trace_context(cfg, st.mis_etas, path.log_n_light_tracing(cfg, N, dt),
                                       dt)
-    cm0 = None if st.cam_start is None else st.cam_start.mis
-    lm0 = None if st.light_start is None else st.light_start.mis
+    cm0 = None if st.cam_start is None else st.cam_start.carry
+    lm0 = None if st.light_start is None else st.light_start.carry
     # the records come back with the start vertices z_0 / y_0 as row 0 (`subpath.trace`'s
     # v0), so that they are the `PathEnds` as they are
     c0 = l0 = None
@@ -461,20 +463,20 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
 
     Written for the compiler: the camera values are one elementwise chain (their sum and
     a per-element count of non-finite values; one reduction at the end), and the splats
-    one concatenated scatter. A reduction per technique made each technique its own
-    kernels (vcm at depth 8: ~200 of the pass's ~830 XLA:CPU kernels were this film)."""
+    one concatenated scatter, rather than a reduction per technique, which the CPU
+    backend would run as separate kernels for each technique."""
     P, N, _, dt = _dims(scene, cfg)
     C = scene.channels
     cams = [v for v in st.values if not isinstance(v, tuple)]
     pix = [v[0].reshape(-1) for v in st.values if isinstance(v, tuple)]
     spl = [v[1].reshape(-1, C) for v in st.values if isinstance(v, tuple)]
-    if cams:  # stacked first: each value computed once (as two elementwise chains XLA
-        # fused each technique's producer, its gathers and MIS weight, into both)
+    if cams:  # stacked first, so each value is computed once (else the two elementwise
+        # chains below, sum and count, would each fuse in every technique's producer)
         vals = jnp.stack(cams)
         bad = jnp.sum(~jnp.isfinite(vals), dtype=jnp.int32)
         cam_sum = jnp.zeros((N, C), dt)
-        for i in range(len(cams)):  # in technique order (a reduction over the stack's
-            v = vals[i]             # first axis ran as a slow YNNPACK kernel)
+        for i in range(len(cams)):  # in technique order (elementwise: not a reduction
+            v = vals[i]             # over the stack's first axis, a kernel of its own)
             cam_sum = cam_sum + jnp.where(jnp.isfinite(v), v, 0.0)
     else:
         cam_sum, bad = jnp.zeros((N, C), dt), jnp.zeros((), jnp.int32)
@@ -567,9 +569,10 @@ def _stage_program(stage: Stage, cfg: RenderConfig):
 
 def profile_stages(scene: Scene, cfg: RenderConfig, passes: int = 3, seed: int = 0
                    ) -> dict[str, float]:
-    """Median wall seconds per stage of `cfg`'s pass (`pass_stages` names, in order, plus
-    "whole pass": the usual single-jit pass) over `passes` passes with keys
-    `pass_key(seed, i)`. Each stage is jitted on its own, its inputs computed by the earlier
+    """Time each stage of a pass on its own: median wall seconds per stage.
+
+    Stages of `cfg`'s pass (`pass_stages` names, in order, plus "whole pass": the usual
+    single-jit pass), over `passes` passes with keys `pass_key(seed, i)`. Each stage is jitted on its own, its inputs computed by the earlier
     stages and waited for before its clock starts; every program is compiled and run once
     (pass 0) before timing. The merge capacity is raised first if a pass would overflow it,
     as the host driver does. Separate programs cannot fuse across stages, so the stages'

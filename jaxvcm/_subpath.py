@@ -4,7 +4,7 @@ The same per-ray step serves both directions; only the transport mode differs (c
 paths carry radiance: refraction scales by 1/eta^2; light paths carry importance: it does
 not) and what is recorded about emitters. Per vertex v_j the record holds position,
 normal or medium flag, the direction back to v_{j-1}, the throughput arriving at v_j, and
-the pdfs that explicit-sum MIS needs (`_mis.py`):
+the pdfs that explicit-sum MIS needs (`_mis`):
     pdf_fwd  p(v_j | v_{j-1}) in area (surface) / volume (medium) measure, or solid angle
              for a vertex at infinity (escaped to the sky),
     pdf_rev  p(v_{j-1} | v_j): the reverse pdf of the previous vertex, known once v_j has
@@ -24,10 +24,10 @@ light-side pdf of x_2 reached through it cos_2 / d_12^2, and in the ratio of mer
 x_2 to the camera hitting the light x_0 the distances d_01, d_12 cancel against those of
 the non-delta pdfs at x_1. (pbrt's BDPT remaps the converted pdf itself to 1, which drops
 cos / d^2 and leaves a stray (d_12 / d_01)^2 in that ratio: harmless among connections,
-which never join at a delta vertex, but with merging it gave the camera's hit of the
-pool's light through the water weight ~1 against merging for wall points near the
-waterline: rare samples 10^2-10^4 times the pixel mean. docs/design.md, "Delta vertices
-and merging".)
+which never join at a delta vertex, but with merging it misweights techniques, e.g. the
+camera's hit of a pool's light through the water against merging at wall points near the
+waterline, whose rare samples then carry many times the pixel mean. docs/design/mis.md,
+"Delta vertices".)
 """
 
 from __future__ import annotations
@@ -52,8 +52,8 @@ from ._uniforms import Uniforms
 from ._vec import Vec3
 
 # vertex kind of a scattering event in the water: after every MAT_* kind, never equal to one
-# (it was 3 = MAT_GLOSSY once, which flagged glossy vertices as medium vertices at the joins:
-# no cosine in their area pdfs, the volume kernel in merging; bdpt/vcm 1-14 % low)
+# (a material vertex taken for a medium vertex at the joins would lose the cosine of its
+# area pdfs and merge with the volume kernel)
 KIND_MEDIUM = max(MAT_NAMES) + 1
 assert KIND_MEDIUM not in MAT_NAMES
 KIND_NONE = -1
@@ -80,7 +80,7 @@ class Vertex(NamedTuple):
     escaped: Array  # vertex at infinity (the ray left the scene)
     alive: Array  # the vertex exists
     dispersed: Array  # beta went through a dispersive refraction: hero only, times C
-    mis: Any = None  # `_mis_recursive.Record` (mis_form "recursive"), else None
+    mis: Any = None  # `_mis._recursive.Record` (mis_form "recursive"), else None
 
 
 class WalkState(NamedTuple):
@@ -97,8 +97,9 @@ class WalkState(NamedTuple):
     prev_inf: Array  # p_prev is a light vertex at infinity (sun / sky disk)
     prev_conv: Array  # p_prev's reverse pdf needs no area conversion (camera, infinite light)
     dispersed: Array  # beta went through a dispersive refraction (hero channel only, x C)
-    mis: Any = None  # `_mis_recursive.Carry` (mis_form "recursive"), else None
-    pt: Any = None  # `_inline.Carry` (PT's techniques in the trace), else None
+    # what the pass's route carries along the walk: the recursive MIS form's
+    # `_mis._recursive.Carry`, PT's in-trace techniques' `_inline.Carry`, or None
+    carry: Any = None
 
 
 def rr(index, q, cfg: RenderConfig):
@@ -190,9 +191,9 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
          t_water=None, mis_ctx=None) -> tuple[WalkState, Vertex]:
     """Extend one subpath by one segment; `index` = segments before the new vertex minus 1.
     `t_water`: the water's distance along the ray, when the caller computed it for the
-    batch (`geometry.water_hits`); None: computed here. With a carry in `s.mis`
-    (mis_form "recursive") the step also carries the MIS recursion one vertex on
-    (`_mis_recursive.carry_step`, `mis_ctx` its per-pass `Context`)."""
+    batch (`geometry.water_hits`); None: computed here. With the recursive MIS form's carry
+    in `s.carry` the step also carries the recursion one vertex on
+    (`_mis._recursive.carry_step`, `mis_ctx` its per-pass `Context`)."""
     water = scene.water
     dt = s.o.x.dtype
     C = scene.channels
@@ -205,8 +206,9 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
         ff = media.sample_free_flight(water, hit.t, u[0], u[1])
         # the basin is closed: a ray in the water meets a surface. One that meets none has
         # slipped past a wall where it meets the waterline (float32) and would scatter
-        # metres outside the scene (a photon 50 m away broke the hash grid's precision);
-        # it gets no medium vertex and the lane ends (an escaped ray in the water).
+        # metres outside the scene (a photon far outside it would defeat the hash grid's
+        # precision); it gets no medium vertex and the lane ends (an escaped ray in the
+        # water).
         scatter = s.alive & s.in_water & ff.scatter & jnp.isfinite(hit.t)
         beta = jnp.where(s.in_water, s.beta * ff.weight, s.beta)
         t = jnp.where(s.in_water, ff.t, hit.t)
@@ -288,10 +290,10 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
 
     # ---- the recursive MIS quantities, carried on from the pdfs just computed ----
     mis_carry = mis_rec = None
-    if s.mis is not None:
+    if isinstance(s.carry, mis_recursive.Carry):
         sg = jax.lax.stop_gradient
         mis_carry, mis_rec = mis_recursive.carry_step(
-            cfg, s.mis, mis_ctx, radiance, index, sg(pdf_fwd), sg(rev), sg(q_loc), sg(q),
+            cfg, s.carry, mis_ctx, radiance, index, sg(pdf_fwd), sg(rev), sg(q_loc), sg(q),
             delta, scatter, s.prev_delta)
 
     vertex = Vertex(p_rec, n, wo, beta, jax.lax.stop_gradient(pdf_fwd),
@@ -317,21 +319,21 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     lane's y_0 / z_0 reverse pdf p(v_0 | v_1) (1 where v_1 does not exist).
 
     A queue of lanes, not a loop over depths: each round advances the first
-    L / cfg.tuning.trace_split lanes (`_queue.round_width`) that are still alive by one vertex (gather, `step`, scatter
-    back), so the work follows the vertices that exist, not L x n_steps. Rounds with no
-    live lane left are skipped (`lax.cond` on a scalar); there are enough rounds for
-    every lane to run every step (n_steps L / W full ones and n_steps more), so nothing is
-    ever dropped. Each lane sees the same
-    uniforms (u[its depth, its lane]) as in a loop over depths: the live records do not
+    L / cfg.tuning.trace_split lanes (`_queue.round_width`) that are still alive by one
+    vertex (gather, `step`, scatter back), so the work follows the vertices that exist, not
+    L x n_steps. Rounds with no live lane left are skipped (`lax.cond` on a scalar); there
+    are enough rounds for every lane to run every step (n_steps L / W full ones and n_steps
+    more), so nothing is ever dropped. Each lane sees the same uniforms (u[its depth, its
+    lane]) as in a loop over depths: the live records do not
     depend on the round width. A batch of at most one round per step (W >= L) runs the
     plain loop over depths (`_trace_all`). `mis_ctx`: the recursive MIS form's per-pass
-    `_mis_recursive.Context` (when `s0.mis` carries its recursion).
+    `_mis._recursive.Context` (when `s0.carry` carries its recursion).
 
     `v0` ([L] records of the start vertices): the records come back with it as row 0
     ([n_steps + 1, L]; vertex k in row k + 1) and the reverse pdf p(v_0 | v_1) written
     into row 0 for the light lanes (not radiance); camera lanes keep v0's. The records
     are then the subpaths' `PathEnds` as they are (`ends`): no copy of every field to
-    prepend the start vertex (on the pool at 256x256 that copy was ~10 % of PT's pass).
+    prepend the start vertex.
 
     `estimate` (`_inline.estimate` bound to its scene, config and uniforms): evaluate
     techniques at each vertex as a round makes it, `estimate(kg, g, live, s, s_new, v)
@@ -347,10 +349,9 @@ def trace(scene: Scene, cfg: RenderConfig, radiance, s0: WalkState, u, n_steps: 
     W = round_width(L, cfg.tuning.trace_split)  # lanes per round
     # Enough rounds for every lane to run every step: a round either advances W lanes (at
     # most n_steps L / W such rounds) or every lane that still has a step to take, and a
-    # lane takes at most n_steps steps, so at most n_steps rounds are not full. (It was
-    # ceil(n_steps L / W): when the last lanes to start were fewer than W, the rounds ran
-    # out before their last steps, e.g. L = 2304 lanes, W = 1024: lanes 2111.. stopped at
-    # depth 2 and a furnace came out 3.7 % dark.) Rounds with no live lane are skipped.
+    # lane takes at most n_steps steps, so at most n_steps rounds are not full (ceil(n_steps
+    # L / W) alone would not do: when the last lanes to start are fewer than W, the rounds
+    # would run out before their last steps). Rounds with no live lane are skipped.
     rounds = (n_steps * L) // W + n_steps
     if W >= L and estimate is not None:
         return _trace_all(scene, cfg, radiance, s0, u, n_steps, mis_ctx, estimate)
@@ -451,13 +452,12 @@ def tail_width(W: int, cfg: RenderConfig, single: bool) -> int | None:
     The queue's last rounds are not full: once fewer than W lanes are alive, each round
     advances all of them by one vertex, yet a W-wide round costs its width whatever it
     holds. With Russian roulette the survivors thin out geometrically, so these rounds
-    grow with the maximum depth, not with the vertices (PT on the pool at 256x256: 4 of
-    31 rounds at depth 8, 12 of 41 at depth 16, holding 3914 .. 12 lanes of 8192). A
-    second copy of the step, Wt wide, runs the rounds with at most Wt lanes left: PT at
-    depth 16 0.237 -> 0.228 s, for ~3 s more compile time (PT's cold first pass 6.6 ->
-    9.6 s), hence by default only from max_depth 3 rr_depth on (`RenderConfig.trace_tail`
-    0), and only in single-direction traces (PT, light tracing): in `trace_both` the copy
-    would cost VCM's first pass its 15 s budget (docs/design.md, "Speed, tenth step")."""
+    grow with the maximum depth, not with the vertices. A second copy of the step, Wt
+    wide, runs the rounds with at most Wt lanes left. The copy costs compile time, so by
+    default it is there only from max_depth 3 rr_depth on (`Tuning.trace_tail` 0), where
+    the tail rounds are many, and only in single-direction traces (PT, light tracing),
+    not in `trace_both`, whose program is already the largest to compile
+    (docs/design/performance.md)."""
     tail = cfg.tuning.trace_tail or (8 if cfg.max_depth >= 3 * cfg.rr_depth else 1)
     if not single or tail <= 1:
         return None
@@ -525,8 +525,8 @@ def _dead_records(s0: WalkState, n_steps: int | None, C: int) -> Vertex:
 
     f = full(False)
     mis = None
-    if s0.mis is not None:  # never read: a dead vertex takes part in no technique
-        K = s0.mis.rec.shape[-1]
+    if isinstance(s0.carry, mis_recursive.Carry):  # never read: a dead vertex takes part
+        K = s0.carry.rec.shape[-1]                   # in no technique
         mis = mis_recursive.Record(jnp.zeros(lead + (K,), dt), f)
     return Vertex(
         jax.tree.map(full, s0.o), jax.tree.map(full, s0.n_prev), jax.tree.map(full, -s0.d),
@@ -539,8 +539,8 @@ def trace_both(scene: Scene, cfg: RenderConfig, cam0: WalkState, u_cam, n_cam: i
                light0: WalkState, u_light, n_light: int, mis_ctx=None, v0=None):
     """Camera and light subpaths in one trace (one copy of `step` in the compiled program):
     the 2N lanes carry their transport mode as a per-lane flag, and each lane computes
-    exactly what its own `trace` would (its uniforms, its mode, its number of steps). Returns (camera records
-    [n_cam, N], (light records [n_light, N], y_0's reverse pdf))."""
+    exactly what its own `trace` would (its uniforms, its mode, its number of steps).
+    Returns (camera records [n_cam, N], (light records [n_light, N], y_0's reverse pdf))."""
     if isinstance(u_cam, Uniforms):  # side by side, hashed where used (`_uniforms`)
         N = u_cam.lanes
         assert u_cam.rows == (n_cam,) and u_light.rows == (n_light,)
@@ -603,7 +603,7 @@ class PathEnds(NamedTuple):
     seg_water: Array
     alive: Array
     disp: Array  # beta carries the hero-only x C of a dispersive refraction (`_subpath`)
-    mis: Any = None  # `_mis_recursive.Record` [D+1, N, ...] (mis_form "recursive")
+    mis: Any = None  # `_mis._recursive.Record` [D+1, N, ...] (mis_form "recursive")
     table: Any = None  # `VertexTable`: the same records as the trace packed them
 
 
@@ -635,8 +635,8 @@ def vertex_table(ends: PathEnds):
     """`at(i, n) -> PathEnds` of vertex i of lane n (traced indices, any batch shape). The
     records packed per dtype (`_queue.Packed`: one [D+1, N, F] array each; the trace's
     own `VertexTable` when the ends carry it, else packed here), so a vertex is one
-    gather per dtype, not one per field: the ~20 per-field gathers of a join kernel were
-    each a kernel of XLA:CPU's own (compile time) and a cache miss each (run time)."""
+    gather per dtype, not one per field (a join kernel reads some twenty fields, and on
+    the CPU backend each gather is a kernel of its own and a cache miss of its own)."""
     if ends.table is not None:  # the trace's own packing: no copy
         return ends.table.at
     pk = Packed(ends, 2)

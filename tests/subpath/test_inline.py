@@ -28,15 +28,15 @@ INLINE_STAGE = "subpaths, emitter hits, next-event estimation"
 
 def test_pt_image_pass_runs_its_techniques_in_the_trace():
     cfg = RenderConfig(algorithm="pt", max_depth=4)
-    names = [n for n, _ in pass_stages(cfg, summed=True)]
+    names = [n for n, _ in pass_stages(cfg, image_only=True)]
     assert names == ["setup", "camera rays", INLINE_STAGE, "film"]
     # technique images, the recursive form and the other algorithms keep the records
     assert INLINE_STAGE not in [n for n, _ in pass_stages(cfg)]
     rec = dataclasses.replace(cfg, mis_form="recursive")
-    assert "emitter hits" in [n for n, _ in pass_stages(rec, summed=True)]
+    assert "emitter hits" in [n for n, _ in pass_stages(rec, image_only=True)]
     for alg in ("lt", "bdpt", "ppm", "bpm", "vcm"):
         assert INLINE_STAGE not in [n for n, _ in pass_stages(RenderConfig(algorithm=alg),
-                                                              summed=True)]
+                                                              image_only=True)]
 
 
 # (scene, size): pool_sky at 48x48 = 2304 lanes runs the trace's queue (rounds of 1024
