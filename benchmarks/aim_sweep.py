@@ -1,4 +1,4 @@
-"""Scale sweep of issue 13: the same flat sunlit pool at widths 2, 20 and 120 m, the same
+"""Aimed emission, scale sweep: the same flat sunlit pool at widths 2, 20 and 120 m, the same
 camera (3 m above the centre, looking straight down, 2 degree field of view, 8 x 8
 pixels), purely absorbing water 1.2 m deep, black walls, the sun 14 degrees from the
 zenith. The camera sees only the refracted sun on the floor (light -> surface -> floor ->
@@ -128,7 +128,7 @@ def run_sweep(a, argv, log) -> dict:
 
 def markdown(res: dict) -> str:
     from . import _common as C
-    L = C.section_head("Aimed emission: scale sweep (issue 13)", res) + [
+    L = C.section_head("Aimed emission: scale sweep", res) + [
         f"- The flat sunlit pool of `benchmarks/aim_sweep.py` at widths "
         f"{', '.join(f'{w:g}' for w in WIDTHS)} m, the same camera (3 m above the centre, "
         "straight down, 2 degrees, 8x8); max depth 4; each row renders for "

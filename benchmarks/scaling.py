@@ -1,5 +1,5 @@
 """`jaxvcm bench --scaling`: time and memory per pass against the number of paths, and
-passes on 1 and 2 devices (issue 11).
+passes on 1 and 2 devices.
 
 Sweep: `pool.toml` at depth `--max-depth` (default 8), square images whose pixel count is
 the number of light (and camera) paths per pass, 64 k to 4 M. Every size runs in chunks of

@@ -1,4 +1,4 @@
-"""`jaxvcm bench --startup`: how long a user waits for the first pass (issue 10, item 4).
+"""`jaxvcm bench --startup`: how long a user waits for the first pass.
 
 For each algorithm, the README's kind of command `jaxvcm render SCENE --passes 1` runs in a
 fresh process twice with the same, initially empty, persistent compilation cache
@@ -25,7 +25,7 @@ from . import _common as C
 
 TAG = "startup"
 DEFAULT_ALGORITHMS = ("pt", "bdpt", "vcm")
-TARGET_COMPILE_S = 15.0  # VCM's first pass from an empty cache (issue 10)
+TARGET_COMPILE_S = 15.0  # VCM's first pass from an empty cache
 TARGET_WARM_S = 3.0  # from a warm persistent cache
 
 
@@ -97,7 +97,7 @@ def markdown(res: dict) -> str:
          "the sidecar's seconds (compilation or cache load, plus one pass). Median of "
          f"{res['runs']} runs, each with a fresh cache. `import jaxvcm` alone: "
          f"{res['import_s']:.2f} s.",
-         f"- targets (issue 10): VCM's first pass from an empty cache <= {TARGET_COMPILE_S:g} s; "
+         f"- targets: VCM's first pass from an empty cache <= {TARGET_COMPILE_S:g} s; "
          f"a warm start < {TARGET_WARM_S:g} s.", "",
          "| algorithm | cold process | cold first pass | warm process | warm first pass |",
          "|---|---|---|---|---|"]

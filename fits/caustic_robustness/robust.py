@@ -1,4 +1,4 @@
-"""Image-space losses that stay unbiased under caustic fireflies (issue 5, robustness).
+"""Image-space losses that stay unbiased under caustic fireflies.
 
 Why an image-L2 fit drifts. With common random numbers (fixed keys) a rendered pixel is
 R_p(theta) = n_p g_p(theta), where g_p is its expectation and n_p a mean-1 noise factor

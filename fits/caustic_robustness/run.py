@@ -1,4 +1,4 @@
-"""Robustness of the water fit to caustic fireflies (issue 5): image L2 vs region averages
+"""Robustness of the water fit to caustic fireflies: image L2 vs region averages
 vs robust (Cauchy IRLS) per-pixel weights, with the drift predicted from the noise.
 
 Scene: `scene.toml` here (scenes/pool.toml with a 2 m light of the same power and the

@@ -1,4 +1,4 @@
-"""Issue 5, worked fit 3: Jerlov water types. Fit the WaterModel's extra absorption and
+"""Worked fit 3: Jerlov water types. Fit the WaterModel's extra absorption and
 particle scattering so that the RENDERED colour of a white floor at 1, 3 and 10 m under a
 uniform D65 sky matches the colour computed from each Jerlov (1976) K_d spectrum.
 
