@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-from typing import Any, Callable, NamedTuple
+from typing import Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -40,7 +40,7 @@ from . import _subpath as subpath
 from ._config import RenderConfig
 from ._lights import Emission
 from ._merge import Merged, Radii
-from ._mis import mis_form
+from ._mis import SubpathMIS, mis_form
 from ._scene import Scene
 from ._subpath import PathEnds, Vertex, WalkState
 from ._uniforms import Uniforms
@@ -99,7 +99,6 @@ class PassStats(eqx.Module):
 
 
 Splat = tuple[Int[Array, " N"], Float[Array, "N C"]]  # light tracing: (pixel, value)
-SubpathMIS = Any  # a form's per-subpath MIS state (`_mis.AbstractMIS.subpaths`)
 
 
 class PassState(eqx.Module):

@@ -7,9 +7,13 @@ dVM carried along the subpaths). `mis_form(cfg)` is the one place that chooses."
 from .._config import RenderConfig
 from ._base import AbstractMIS as AbstractMIS
 from ._explicit import ExplicitMIS as ExplicitMIS
+from ._explicit import Partials
 from ._full import mis_weight as mis_weight
+from ._recursive import Carried
 from ._recursive import RecursiveMIS as RecursiveMIS
 from ._recursive import mis_weight_recursive as mis_weight_recursive
+
+SubpathMIS = Partials | Carried  # a form's per-subpath state (`AbstractMIS.subpaths`)
 
 
 def mis_form(cfg: RenderConfig) -> AbstractMIS:
