@@ -1,72 +1,10 @@
 """TOML scene files -> `Scene`, with one-line errors naming file, field and problem.
 
-Schema (metres, y up; "spectrum" = a number or a list of C numbers):
-
-  base = "FILE.toml" | ["A.toml", "B.toml"]        # optional: shared parts (below)
-  name = "pool"                                    # optional
-  [camera]  position, target, up = [0,1,0], fov (vertical, degrees), width, height
-  [materials.NAME]  type = "diffuse" | "mirror", albedo = spectrum
-                    type = "glossy", albedo (Lambertian k_d, default 0), glossy (Phong
-                                     k_s, default 0.5), exponent (default 90); two-sided
-                    type = "glass", ior      (smooth dielectric: inside is where the
-                                              shape's normal points away from)
-  [[shapes]] type = "rect":   center, normal, size = [w, h], up (tangent hint), material
-  [[shapes]] type = "sphere": center, radius, material
-  [[shapes]] type = "basin":  min = [x0, floor, z0], max = [x1, top, z1],
-                              floor_material, wall_material,
-                              wall_tops = [top at x0, at x1, at z0, at z1]   (optional)
-             (an open box: floor + 4 inward-facing walls, expanded into 5 rectangles)
-             every shape: two_sided = true (default: a diffuse or glossy shape scatters on
-             both faces) | false (only on the side its normal faces, black from behind,
-             like SmallVCM's and Mitsuba's diffuse; diffuse and glossy materials only)
-  [water]   level, waves = [[A, kx, kz, phase], ...], sigma_a, sigma_s (1/m, spectra),
-            phase = "isotropic" | "hg" | "water", g (hg), b = 0.835 (water), ior,
-            footprint = [xmin, xmax, zmin, zmax], floor   (default: the basin's interior)
-  [[lights]] type = "rect":   center, normal (the side it emits to), size, radiance, up
-  [[lights]] type = "sphere": center, radius, radiance                (emits both ways)
-  [[lights]] type = "sun":    direction (the way light travels), irradiance, aim
-  [[lights]] type = "sky":    radiance, aim              (directions with y > 0 only)
-             aim = 0 (default) .. < 1: the fraction of the light's photons aimed at the
-             water's footprint (the caustic caster) instead of the scene's bounding disk;
-             the rest still cover the scene, and every technique's MIS uses the mixture
-             pdf (`_lights.aimed_pdf`), so images are unbiased either way (needs [water];
-             an aimed sun must shine downwards)
-  [[lights]] type = "point":  position, intensity (W/sr)  (isotropic, delta position)
-  [[lights]] type = "background": radiance               (every direction; SmallVCM's
-                                                          background; at most one of
-                                                          sky and background)
-
-Valid ranges (anything outside is a one-line error naming the field; the constants are in
-`_toml.py` and `_scene_sections.py`). They keep every derived value finite in float32:
-
-  coordinates (positions, centers, targets, basin min/max, footprint, level, floor,
-      wave amplitude)                 |x| <= 1e6 m
-  sizes, radii                        1e-6 m .. 1e6 m, and >= 1e-6 x the scene's extent
-                                      (smaller shapes are not resolved in float32)
-  directions (normal, up, direction)  not all zero; a rect's `up` not parallel to its normal
-  camera.fov                          0.01 .. 179 degrees (vertical)
-  camera.width, camera.height         1 .. 16384 (also --width / --height)
-  albedo (materials and emitters)     0 .. 1 (glossy: albedo + glossy <= 1 per channel)
-  exponent (glossy)                   1 .. 1e5
-  radiance, irradiance                0 .. 1e15 (> 0 in some channel)
-  sigma_a, sigma_s                    0 .. 1e6 1/m
-  ior                                 1 .. 3 (1: an index-matched boundary, no refraction)
-  wave numbers kx, kz                 |k| <= 1e4 rad/m; phase |p| <= 1e6 rad
-  g (hg)                              -0.999 .. 0.999;  b (water phase 1 + b cos^2): 0 .. 10
-  any other number                    |x| <= 1e6
-Integers of any size and floats beyond float64 (inf, nan) are rejected the same way. The file
-must be UTF-8 TOML; keys that are not bare are shown quoted in messages.
-
-Variants share parts through `base`: the files it names (paths relative to this file, each
-possibly with its own `base`; at most MAX_BASES in a chain, no cycles) are read first, in
-order, and this file is laid over them: tables merge key by key, [[shapes]] and
-[[lights]] entries are appended after the bases' ones, any other value replaces the
-base's. A base need not be a whole scene (scenes/_base/ holds the Cornell box's parts).
-Messages name the file that was loaded and the merged document's field (shapes[i] counts
-the bases' shapes first).
-
-The file is read and its values checked in `_toml.py` (`SceneError`, `_Ctx`); each section
-is parsed in `_scene_sections.py`, and `scene_from_dict` below puts the parts together.
+The format (sections, fields, kinds, units, valid ranges, defaults) is the schema in
+`_schema.py`, which the validation reads and docs/scene-format.md is generated from. A
+file is read and its values checked in `_toml.py` (`SceneError`, `_Ctx`), its `base` files
+merged under it here (`read_scene_doc`), each section parsed in `_scene_sections.py`, and
+`scene_from_dict` below puts the parts together.
 """
 
 from __future__ import annotations
@@ -84,7 +22,8 @@ from .._scene import (
 from ._scene_sections import (
     _Parts, parse_camera, parse_lights, parse_materials, parse_shapes, parse_water,
 )
-from ._toml import REL_SIZE, SceneError, _Ctx, read_toml
+from ._schema import DOCUMENT, MAX_BASES, REL_SIZE
+from ._toml import SceneError, _Ctx, read_toml
 
 __all__ = ["SceneError", "load_scene", "read_scene_doc", "scene_from_dict"]
 
@@ -96,7 +35,6 @@ def load_scene(path: str | os.PathLike, *, width: int | None = None, height: int
     return scene_from_dict(read_scene_doc(src), src, width=width, height=height, dtype=dtype)
 
 
-MAX_BASES = 8  # files in one chain of `base`s
 _APPENDED = ("shapes", "lights")  # arrays of tables that a file adds to its bases'
 
 
@@ -142,11 +80,11 @@ def read_scene_doc(src: str, _chain: tuple = ()) -> dict:
 
 def scene_from_dict(doc: dict, src: str = "<scene>", *, width=None, height=None,
                     dtype=jnp.float32) -> Scene:
-    """Validate a parsed scene document (the format above) and build the `Scene`;
+    """Validate a parsed scene document (the schema's format) and build the `Scene`;
     `width` / `height` override the camera's. Sections are checked in the order below."""
     ctx = _Ctx(src)
-    ctx.table(doc, {"name", "camera", "materials", "shapes", "water", "lights"},
-              {"camera", "lights"}, "")
+    # `base` is not among the keys: `read_scene_doc` merged the bases and removed it
+    ctx.table(doc, DOCUMENT.keys(), DOCUMENT.required(), "")
     name = ctx.string(doc.get("name", os.path.splitext(os.path.basename(src))[0]), "name")
     # The ranges of `_toml` keep every value below finite; a floating-point exception here
     # is a gap in them, reported as one line rather than as a NumPy warning.

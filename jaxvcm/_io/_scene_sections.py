@@ -1,10 +1,12 @@
-"""One parser per section of a scene file (the format: `_scene_file.py`).
+"""One parser per section of a scene file; the format is the schema of `_schema.py`.
 
 Each parser validates its section through a `_Ctx` (one-line errors naming the field) and
-returns NumPy float64 values; `_Parts` collects what several sections add to (materials,
-rectangles, spheres, lights), in file order: named materials, [[shapes]], [[lights]]
-(each emitter adds an internal material and a rectangle or sphere), then the water
-surface's dielectric material.
+returns NumPy float64 values. The keys each table accepts and requires, the ranges, the
+defaults and the enum choices all come from the schema (`_read` reads a field as its kind
+says); the parsers add the order of the checks and the rules that relate fields.
+`_Parts` collects what several sections add to (materials, rectangles, spheres, lights),
+in file order: named materials, [[shapes]], [[lights]] (each emitter adds an internal
+material and a rectangle or sphere), then the water surface's dielectric material.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import Any
 
 import numpy as np
 
@@ -20,21 +23,46 @@ from .._scene import (
     MAT_GLOSSY, MAT_MIRROR,
     PHASE_HG, PHASE_ISOTROPIC, PHASE_WATER,
 )
-from ._toml import CHANNELS, COORD, SIZE, Range, _Ctx, key_path
+from ._schema import (
+    ANY, CAMERA, CHANNELS, COORD, LIGHTS, MATERIALS, PARALLEL, SHAPES, WATER, Derived, Field,
+)
+# re-exported: the fit config's spectral.ior and the command line's --width / --height
+from ._schema import IOR as IOR
+from ._schema import MAX_PIXELS as MAX_PIXELS
+from ._toml import _Ctx, key_path
 
-# ---- the ranges of the scene format's numbers (the schema table in `_scene_file.py`) ----
-FOV = Range(0.01, 179.0, "degrees")
-MAX_PIXELS = 16384  # per side: a 16384^2 float32 RGB film is 3.2 GB
-ALBEDO = Range(0.0, 1.0)  # materials and emitters alike (energy conservation)
-RADIANCE = Range(0.0, 1e15, "W/(m^2 sr)")  # irradiance: W/m^2; power stays < 1e29 W
-SIGMA = Range(0.0, 1e6, "1/m")  # optical depth 1 over a micrometre
-IOR = Range(1.0, 3.0)  # 1: an index-matched boundary (no refraction); diamond is 2.42
-WAVE_K = Range(-1e4, 1e4, "rad/m")  # wavelengths down to 0.6 mm
-WAVE_PHASE = Range(-1e6, 1e6, "rad")
-HG_G = Range(-0.999, 0.999)
-WATER_B = Range(0.0, 10.0)  # the 1 + b cos^2 phase of water (0.835 by Morel)
-EXPONENT = Range(1.0, 1e5)  # Phong exponent: a lobe of ~1/sqrt(n) rad, 0.2 degrees at 1e5
-PARALLEL = 0.999  # |cos| between a rectangle's normal and its `up` hint above which it fails
+_GIVEN = object()
+
+
+def _read(ctx: _Ctx, d: dict, spec: Field, f: str, v: Any = _GIVEN):
+    """The field `spec` of the table `d` at path `f` (or the value `v`), its default when
+    absent, read as its kind says with the schema's range, choices and length."""
+    if v is _GIVEN:
+        v = d[spec.name] if spec.required else d.get(spec.name, spec.default)
+    assert not isinstance(v, Derived), spec.name  # the parser computes those
+    path = f"{f}.{spec.name}"
+    k, rng = spec.kind, spec.range
+    if k == "number":
+        return ctx.number(v, path, rng)
+    if k == "integer":
+        return ctx.integer(v, path, int(rng.lo), int(rng.hi))
+    if k == "vector":
+        return ctx.vec(v, path, spec.n, rng=rng)
+    if k == "direction":
+        return ctx.unit(v, path, rng)
+    if k == "spectrum":
+        return ctx.spectrum(v, path, rng, positive=spec.nonzero)
+    if k == "enum":
+        return ctx.string(v, path, spec.choices)
+    if k == "boolean":
+        return ctx.boolean(v, path)
+    return ctx.string(v, path)  # string, material
+
+
+def _check_table(ctx: _Ctx, d, spec, f: str) -> None:
+    """`d` a table with only the keys `spec` (a `Table` or a `Variant`) accepts, and every
+    key it requires."""
+    ctx.table(d, spec.keys(), spec.required(), f)
 
 
 def _frame(normal: np.ndarray, hint: np.ndarray | None):
@@ -90,7 +118,7 @@ class _Parts:
         """The material of a shape with `two_sided` (default true: both faces scatter, as
         always here); false: a one-sided copy of `mat` (black from behind), diffuse and
         glossy only."""
-        if "two_sided" not in s or ctx.boolean(s["two_sided"], f + ".two_sided"):
+        if _read(ctx, s, SHAPES["two_sided"], f):
             return mat
         if self.mat_kind[mat] not in (MAT_DIFFUSE, MAT_GLOSSY):
             ctx.fail(f + ".two_sided", f"only diffuse and glossy surfaces can be one-sided "
@@ -131,14 +159,13 @@ class _Parts:
 # ---------------------------------------------------------------- [camera]
 def parse_camera(ctx: _Ctx, c, width=None, height=None) -> dict:
     """[camera] -> origin, orthonormal (forward, right, up), tan(fov / 2), width, height."""
-    ctx.table(c, {"position", "target", "up", "fov", "width", "height"},
-              {"position", "target", "fov", "width", "height"}, "camera")
-    pos = ctx.vec(c["position"], "camera.position", rng=COORD)
-    tgt = ctx.vec(c["target"], "camera.target", rng=COORD)
-    up = ctx.unit(c.get("up", [0.0, 1.0, 0.0]), "camera.up")
-    fov = ctx.number(c["fov"], "camera.fov", FOV)
-    W = ctx.integer(c["width"] if width is None else width, "camera.width", hi=MAX_PIXELS)
-    H = ctx.integer(c["height"] if height is None else height, "camera.height", hi=MAX_PIXELS)
+    _check_table(ctx, c, CAMERA, "camera")
+    pos = _read(ctx, c, CAMERA["position"], "camera")
+    tgt = _read(ctx, c, CAMERA["target"], "camera")
+    up = _read(ctx, c, CAMERA["up"], "camera")
+    fov = _read(ctx, c, CAMERA["fov"], "camera")
+    W = _read(ctx, c, CAMERA["width"], "camera", c["width"] if width is None else width)
+    H = _read(ctx, c, CAMERA["height"], "camera", c["height"] if height is None else height)
     # The frame in float64 NumPy: jaxvcm._camera.camera_frame computes in JAX (float32
     # unless x64 is on) and does not give bit-identical frames.
     fwd = tgt - pos
@@ -156,14 +183,20 @@ def parse_camera(ctx: _Ctx, c, width=None, height=None) -> dict:
 
 
 # ---------------------------------------------------------------- [materials.NAME]
-def _albedo(ctx: _Ctx, v, field: str) -> np.ndarray:
-    """One rule for every albedo, of materials and of emitters: 0 <= albedo <= 1."""
+def _albedo(ctx: _Ctx, d: dict, spec: Field, f: str) -> np.ndarray:
+    """One rule for every albedo, of materials and of emitters: within the schema's range
+    (0 <= albedo <= 1), the upper bound reported as energy conservation."""
+    v = d.get(spec.name, spec.default)
+    field = f"{f}.{spec.name}"
     a = ctx.spectrum(v, field)
     for i, x in enumerate(a):
-        if x > 1:
+        if x > spec.range.hi:
             ctx.fail(field if not isinstance(v, list) else f"{field}[{i}]",
-                     f"must be <= 1 (energy conservation), got {x:g}")
+                     f"must be <= {spec.range.hi:g} (energy conservation), got {x:g}")
     return a
+
+
+_MAT_KINDS = {"diffuse": MAT_DIFFUSE, "mirror": MAT_MIRROR}
 
 
 def parse_materials(ctx: _Ctx, mats, parts: _Parts) -> None:
@@ -172,94 +205,93 @@ def parse_materials(ctx: _Ctx, mats, parts: _Parts) -> None:
     parts.named = mats
     for mname, m in mats.items():
         f = key_path("materials", mname)
-        ctx.table(m, {"type", "albedo", "ior", "glossy", "exponent"}, {"type"}, f)
-        kind = ctx.string(m["type"], f + ".type", ("diffuse", "mirror", "glass", "glossy"))
+        _check_table(ctx, m, MATERIALS, f)
+        kind = _read(ctx, m, MATERIALS["type"], f)
+        spec = MATERIALS.variant(kind)
+        _check_table(ctx, m, spec, f)
         if kind == "glass":  # a smooth dielectric: exact Fresnel, lossless
-            ctx.table(m, {"type", "ior"}, {"type", "ior"}, f)
-            parts.add_material(MAT_DIELECTRIC, 1.0, ctx.number(m["ior"], f + ".ior", IOR),
-                               name=mname)
+            parts.add_material(MAT_DIELECTRIC, 1.0, _read(ctx, m, spec["ior"], f), name=mname)
         elif kind == "glossy":  # Lambertian k_d + normalised Phong k_s (SmallVCM's model)
-            ctx.table(m, {"type", "albedo", "glossy", "exponent"}, {"type"}, f)
-            kd = _albedo(ctx, m.get("albedo", 0.0), f + ".albedo")
-            ks = _albedo(ctx, m.get("glossy", 0.5), f + ".glossy")
+            kd = _albedo(ctx, m, spec["albedo"], f)
+            ks = _albedo(ctx, m, spec["glossy"], f)
             for i, x in enumerate(kd + ks):
-                if x > 1:
+                if x > spec["glossy"].range.hi:
                     ctx.fail(f + ".glossy", f"albedo + glossy must be <= 1 (energy "
                                             f"conservation), got {x:g} in channel {i}")
-            n = ctx.number(m.get("exponent", 90.0), f + ".exponent", EXPONENT)
+            n = _read(ctx, m, spec["exponent"], f)
             parts.add_material(MAT_GLOSSY, kd, 1.0, ks, n, name=mname)
         else:
-            ctx.table(m, {"type", "albedo"}, {"type"}, f)
-            albedo = _albedo(ctx, m.get("albedo", 1.0 if kind == "mirror" else 0.5),
-                             f + ".albedo")
-            parts.add_material(MAT_DIFFUSE if kind == "diffuse" else MAT_MIRROR, albedo,
-                               name=mname)
+            parts.add_material(_MAT_KINDS[kind], _albedo(ctx, m, spec["albedo"], f), name=mname)
 
 
 # ---------------------------------------------------------------- [[shapes]]
-def _rect_size(ctx: _Ctx, s: dict, f: str) -> np.ndarray:
-    size = ctx.vec(s["size"], f + ".size", 2, rng=COORD)
+def _rect_size(ctx: _Ctx, s: dict, f: str, spec: Field) -> np.ndarray:
+    """Two sides: numbers within the coordinates' range, then > 0, then in the size range
+    (so a negative side is reported as a zero-size shape)."""
+    size = ctx.vec(s[spec.name], f + ".size", spec.n, rng=COORD)
     if np.any(size <= 0):
         ctx.fail(f + ".size", "zero-size shape: both sides must be > 0")
     for i, x in enumerate(size):
-        ctx.number(x, f"{f}.size[{i}]", SIZE)
+        ctx.number(x, f"{f}.size[{i}]", spec.range)
     return size
 
 
-def _radius(ctx: _Ctx, s: dict, f: str) -> float:
-    r = ctx.number(s["radius"], f + ".radius", COORD)
+def _radius(ctx: _Ctx, s: dict, f: str, spec: Field) -> float:
+    r = ctx.number(s[spec.name], f + ".radius", COORD)
     if r <= 0:
         ctx.fail(f + ".radius", "zero-size shape: must be > 0")
-    return ctx.number(r, f + ".radius", SIZE)
+    return ctx.number(r, f + ".radius", spec.range)
 
 
-def _rect(ctx: _Ctx, s: dict, f: str, parts: _Parts, mat: int, light: int = -1) -> None:
+def _rect(ctx: _Ctx, s: dict, f: str, spec, parts: _Parts, mat: int, light: int = -1) -> None:
     """A rectangle of a [[shapes]] or [[lights]] entry: center, normal, size, `up` hint."""
-    size = _rect_size(ctx, s, f)
-    normal = ctx.unit(s["normal"], f + ".normal")
+    size = _rect_size(ctx, s, f, spec["size"])
+    normal = _read(ctx, s, spec["normal"], f)
     hint = None
     if "up" in s:
-        hint = ctx.unit(s["up"], f + ".up")
+        hint = _read(ctx, s, spec["up"], f)
         if abs(np.dot(hint, normal)) > PARALLEL:
             ctx.fail(f + ".up", f"must not be parallel to {f}.normal (it orients the "
                                 "rectangle's sides)")
-    parts.add_rect(ctx.vec(s["center"], f + ".center", rng=COORD), normal, size, hint, mat,
-                   light)
+    parts.add_rect(_read(ctx, s, spec["center"], f), normal, size, hint, mat, light)
     parts.sizes.append((f + ".size", float(size.min())))
 
 
+def _material(ctx: _Ctx, s: dict, f: str, parts: _Parts, spec: Field) -> int:
+    """The material a shape names in `spec`, one-sided if the shape says so."""
+    return parts.sided(ctx, s, f, parts.mat_ref(ctx, s[spec.name], f"{f}.{spec.name}"))
+
+
 def _rect_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
-    ctx.table(s, {"type", "center", "normal", "size", "up", "material", "two_sided"},
-              {"center", "normal", "size", "material"}, f)
-    _rect(ctx, s, f, parts,
-          parts.sided(ctx, s, f, parts.mat_ref(ctx, s["material"], f + ".material")))
+    spec = SHAPES.variant("rect")
+    _check_table(ctx, s, spec, f)
+    _rect(ctx, s, f, spec, parts, _material(ctx, s, f, parts, spec["material"]))
 
 
 def _sphere_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
-    ctx.table(s, {"type", "center", "radius", "material", "two_sided"},
-              {"center", "radius", "material"}, f)
-    r = _radius(ctx, s, f)
-    center = ctx.vec(s["center"], f + ".center", rng=COORD)
-    parts.add_sphere(center, r,
-                     parts.sided(ctx, s, f, parts.mat_ref(ctx, s["material"], f + ".material")))
+    spec = SHAPES.variant("sphere")
+    _check_table(ctx, s, spec, f)
+    r = _radius(ctx, s, f, spec["radius"])
+    center = _read(ctx, s, spec["center"], f)
+    parts.add_sphere(center, r, _material(ctx, s, f, parts, spec["material"]))
     parts.sizes.append((f + ".radius", r))
 
 
 def _basin_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
     """An open box: the floor and 4 inward-facing walls, as 5 rectangles."""
-    ctx.table(s, {"type", "min", "max", "floor_material", "wall_material", "wall_tops",
-                  "two_sided"}, {"min", "max", "floor_material", "wall_material"}, f)
-    lo = ctx.vec(s["min"], f + ".min", rng=COORD)
-    hi = ctx.vec(s["max"], f + ".max", rng=COORD)
+    spec = SHAPES.variant("basin")
+    _check_table(ctx, s, spec, f)
+    lo = _read(ctx, s, spec["min"], f)
+    hi = _read(ctx, s, spec["max"], f)
     if np.any(hi <= lo):
         ctx.fail(f + ".max", "zero-size shape: max must exceed min on every axis")
-    tops = (ctx.vec(s["wall_tops"], f + ".wall_tops", 4, rng=COORD) if "wall_tops" in s
+    tops = (_read(ctx, s, spec["wall_tops"], f, s["wall_tops"]) if "wall_tops" in s
             else np.full(4, hi[1]))
     if np.any(tops <= lo[1]):
         ctx.fail(f + ".wall_tops", "every wall top must be above the floor")
     parts.sizes.append((f + ".max", float(min((hi - lo).min(), (tops - lo[1]).min()))))
-    fm = parts.sided(ctx, s, f, parts.mat_ref(ctx, s["floor_material"], f + ".floor_material"))
-    wm = parts.sided(ctx, s, f, parts.mat_ref(ctx, s["wall_material"], f + ".wall_material"))
+    fm = _material(ctx, s, f, parts, spec["floor_material"])
+    wm = _material(ctx, s, f, parts, spec["wall_material"])
     x0, y0, z0 = lo
     x1, _, z1 = hi
     dx, dz = x1 - x0, z1 - z0
@@ -273,6 +305,7 @@ def _basin_shape(ctx: _Ctx, s: dict, f: str, parts: _Parts) -> None:
 
 
 _SHAPES = {"rect": _rect_shape, "sphere": _sphere_shape, "basin": _basin_shape}
+assert tuple(_SHAPES) == SHAPES.types()
 
 
 def parse_shapes(ctx: _Ctx, shapes, parts: _Parts) -> None:
@@ -282,50 +315,51 @@ def parse_shapes(ctx: _Ctx, shapes, parts: _Parts) -> None:
         f = f"shapes[{i}]"
         if not isinstance(s, dict) or "type" not in s:
             ctx.fail(f + ".type", "missing required field")
-        kind = ctx.string(s["type"], f + ".type", tuple(_SHAPES))
+        kind = _read(ctx, s, SHAPES["type"], f)
         _SHAPES[kind](ctx, s, f, parts)
 
 
 # ---------------------------------------------------------------- [[lights]]
-def _emitter_material(ctx: _Ctx, l: dict, f: str, parts: _Parts) -> int:
-    return parts.add_material(MAT_DIFFUSE, _albedo(ctx, l.get("albedo", 0.0), f + ".albedo"))
+def _emitter_material(ctx: _Ctx, l: dict, f: str, parts: _Parts, spec) -> int:
+    return parts.add_material(MAT_DIFFUSE, _albedo(ctx, l, spec["albedo"], f))
 
 
 def _rect_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
-    ctx.table(l, {"type", "center", "normal", "size", "radiance", "up", "albedo"},
-              {"center", "normal", "size", "radiance"}, f)
-    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
-    m = _emitter_material(ctx, l, f, parts)
-    _rect(ctx, l, f, parts, m, len(parts.l_kind))
+    spec = LIGHTS.variant("rect")
+    _check_table(ctx, l, spec, f)
+    rad = _read(ctx, l, spec["radiance"], f)
+    m = _emitter_material(ctx, l, f, parts, spec)
+    _rect(ctx, l, f, spec, parts, m, len(parts.l_kind))
     return LIGHT_RECT, len(parts.rect_p0) - 1, rad, np.zeros(3)
 
 
 def _sphere_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
-    ctx.table(l, {"type", "center", "radius", "radiance", "albedo"},
-              {"center", "radius", "radiance"}, f)
-    r = _radius(ctx, l, f)
-    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
-    m = _emitter_material(ctx, l, f, parts)
-    parts.add_sphere(ctx.vec(l["center"], f + ".center", rng=COORD), r, m, len(parts.l_kind))
+    spec = LIGHTS.variant("sphere")
+    _check_table(ctx, l, spec, f)
+    r = _radius(ctx, l, f, spec["radius"])
+    rad = _read(ctx, l, spec["radiance"], f)
+    m = _emitter_material(ctx, l, f, parts, spec)
+    parts.add_sphere(_read(ctx, l, spec["center"], f), r, m, len(parts.l_kind))
     parts.sizes.append((f + ".radius", r))
     return LIGHT_SPHERE, len(parts.sph_c) - 1, rad, np.zeros(3)
 
 
-def _aim(ctx: _Ctx, l: dict, f: str) -> float:
-    """`aim`: the fraction of the light's photons aimed at the water's footprint (issue
-    13; 0 <= aim < 1: the rest start on the scene's bounding disk, so light that never
-    meets the water is still emitted)."""
-    a = ctx.number(l.get("aim", 0.0), f + ".aim", nonneg=True)
-    if a >= 1.0:
+def _aim(ctx: _Ctx, l: dict, f: str, spec: Field) -> float:
+    """`aim`: the fraction of the light's photons aimed at the water's footprint, in the
+    schema's [0, 1) (the rest start on the scene's bounding disk, so light that never meets
+    the water is still emitted)."""
+    a = ctx.number(l.get(spec.name, spec.default), f + ".aim", ANY, nonneg=True)
+    if a >= spec.range.hi:
         ctx.fail(f + ".aim", "must be below 1 (the rest of the photons cover the scene)")
     return a
 
 
 def _sun_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
-    ctx.table(l, {"type", "direction", "irradiance", "aim"}, {"direction", "irradiance"}, f)
-    dvec = ctx.unit(l["direction"], f + ".direction")
-    rad = ctx.spectrum(l["irradiance"], f + ".irradiance", RADIANCE, positive=True)
-    aim = _aim(ctx, l, f)
+    spec = LIGHTS.variant("sun")
+    _check_table(ctx, l, spec, f)
+    dvec = _read(ctx, l, spec["direction"], f)
+    rad = _read(ctx, l, spec["irradiance"], f)
+    aim = _aim(ctx, l, f, spec["aim"])
     if aim > 0 and dvec[1] >= 0:
         ctx.fail(f + ".aim", "an aimed sun must shine downwards (direction y < 0)")
     parts.l_aim.append((f + ".aim", aim))
@@ -334,20 +368,19 @@ def _sun_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
 
 def _constant_light(kind: int, ctx: _Ctx, l: dict, f: str, parts: _Parts):
     """Sky (upper hemisphere) and background (every direction): a constant radiance."""
+    spec = LIGHTS.variant("sky" if kind == LIGHT_SKY else "background")
+    _check_table(ctx, l, spec, f)
     if kind == LIGHT_SKY:
-        ctx.table(l, {"type", "radiance", "aim"}, {"radiance"}, f)
-        parts.l_aim.append((f + ".aim", _aim(ctx, l, f)))
-        rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
-        return kind, -1, rad, np.zeros(3)
-    ctx.table(l, {"type", "radiance"}, {"radiance"}, f)
-    rad = ctx.spectrum(l["radiance"], f + ".radiance", RADIANCE, positive=True)
+        parts.l_aim.append((f + ".aim", _aim(ctx, l, f, spec["aim"])))
+    rad = _read(ctx, l, spec["radiance"], f)
     return kind, -1, rad, np.zeros(3)
 
 
 def _point_light(ctx: _Ctx, l: dict, f: str, parts: _Parts):
-    ctx.table(l, {"type", "position", "intensity"}, {"position", "intensity"}, f)
-    pos = ctx.vec(l["position"], f + ".position", rng=COORD)
-    rad = ctx.spectrum(l["intensity"], f + ".intensity", RADIANCE, positive=True)
+    spec = LIGHTS.variant("point")
+    _check_table(ctx, l, spec, f)
+    pos = _read(ctx, l, spec["position"], f)
+    rad = _read(ctx, l, spec["intensity"], f)
     return LIGHT_POINT, -1, rad, pos
 
 
@@ -355,6 +388,7 @@ _LIGHTS = {"rect": _rect_light, "sphere": _sphere_light, "sun": _sun_light,
            "sky": functools.partial(_constant_light, LIGHT_SKY),
            "background": functools.partial(_constant_light, LIGHT_BACKGROUND),
            "point": _point_light}
+assert tuple(_LIGHTS) == LIGHTS.types()
 
 
 def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
@@ -364,7 +398,7 @@ def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
         f = f"lights[{i}]"
         if not isinstance(l, dict) or "type" not in l:
             ctx.fail(f + ".type", "missing required field")
-        kind = ctx.string(l["type"], f + ".type", tuple(_LIGHTS))
+        kind = _read(ctx, l, LIGHTS["type"], f)
         if kind in ("sky", "background") and any(k in (LIGHT_SKY, LIGHT_BACKGROUND)
                                                   for k in parts.l_kind):
             ctx.fail(f + ".type", "at most one sky or background light per scene")
@@ -381,21 +415,22 @@ def parse_lights(ctx: _Ctx, lights, parts: _Parts) -> None:
 
 
 # ---------------------------------------------------------------- [water]
-def _wave(ctx: _Ctx, w, f: str) -> np.ndarray:
+def _wave(ctx: _Ctx, w, f: str, spec: Field) -> np.ndarray:
     """[A, kx, kz, phase]: amplitude in metres, wave numbers in rad/m, phase in rad."""
-    if not isinstance(w, list) or len(w) != 4:
+    if not isinstance(w, list) or len(w) != len(spec.items):
         ctx.fail(f, "expected a list of 4 numbers [A, kx, kz, phase]")
-    rngs = (COORD, WAVE_K, WAVE_K, WAVE_PHASE)
-    return np.array([ctx.number(x, f"{f}[{i}]", r) for i, (x, r) in enumerate(zip(w, rngs))])
+    return np.array([ctx.number(x, f"{f}[{i}]", c.range)
+                     for i, (x, c) in enumerate(zip(w, spec.items))])
 
 
 _PHASES = dict(isotropic=PHASE_ISOTROPIC, hg=PHASE_HG, water=PHASE_WATER)
+assert tuple(_PHASES) == WATER["phase"].choices
 
 
 def _no_water() -> dict:
     return dict(enabled=False, phase=PHASE_ISOTROPIC, level=0.0, waves=np.zeros((0, 4)),
                 fp=np.zeros(4), floor=0.0, sig_a=np.zeros(CHANNELS), sig_s=np.zeros(CHANNELS),
-                g=0.0, b=0.835, ior=1.0, mat=0)
+                g=0.0, b=WATER["b"].default, ior=1.0, mat=0)
 
 
 def parse_water(ctx: _Ctx, wdoc, parts: _Parts) -> dict:
@@ -403,23 +438,23 @@ def parse_water(ctx: _Ctx, wdoc, parts: _Parts) -> dict:
     dielectric material last."""
     if wdoc is None:
         return _no_water()
-    ctx.table(wdoc, {"level", "waves", "sigma_a", "sigma_s", "phase", "g", "b", "ior",
-                     "footprint", "floor"}, {"level", "sigma_a", "sigma_s", "ior"}, "water")
-    level = ctx.number(wdoc["level"], "water.level", COORD)
-    waves = wdoc.get("waves", [])
+    W, f = WATER, "water"
+    _check_table(ctx, wdoc, W, f)
+    level = _read(ctx, wdoc, W["level"], f)
+    waves = wdoc.get("waves", W["waves"].default)
     if not isinstance(waves, list):
         ctx.fail("water.waves", "expected a list of [A, kx, kz, phase]")
-    wv = np.array([_wave(ctx, w, f"water.waves[{j}]") for j, w in enumerate(waves)]
+    wv = np.array([_wave(ctx, w, f"water.waves[{j}]", W["waves"]) for j, w in enumerate(waves)]
                   ).reshape(-1, 4)
-    sig_a = ctx.spectrum(wdoc["sigma_a"], "water.sigma_a", SIGMA)
-    sig_s = ctx.spectrum(wdoc["sigma_s"], "water.sigma_s", SIGMA)
-    phase = ctx.string(wdoc.get("phase", "isotropic"), "water.phase", tuple(_PHASES))
-    g = ctx.number(wdoc.get("g", 0.0), "water.g", HG_G)
-    b = ctx.number(wdoc.get("b", 0.835), "water.b", WATER_B)
-    ior = ctx.number(wdoc["ior"], "water.ior", IOR)
+    sig_a = _read(ctx, wdoc, W["sigma_a"], f)
+    sig_s = _read(ctx, wdoc, W["sigma_s"], f)
+    phase = _read(ctx, wdoc, W["phase"], f)
+    g = _read(ctx, wdoc, W["g"], f)
+    b = _read(ctx, wdoc, W["b"], f)
+    ior = _read(ctx, wdoc, W["ior"], f)
     basin = parts.basin
     if "footprint" in wdoc:
-        fp = ctx.vec(wdoc["footprint"], "water.footprint", 4, rng=COORD)
+        fp = _read(ctx, wdoc, W["footprint"], f, wdoc["footprint"])
     elif basin is not None:
         fp = np.array([basin[0][0], basin[1][0], basin[0][2], basin[1][2]])
     else:
@@ -427,7 +462,7 @@ def parse_water(ctx: _Ctx, wdoc, parts: _Parts) -> dict:
     if fp[1] <= fp[0] or fp[3] <= fp[2]:
         ctx.fail("water.footprint", "zero-size shape: need xmin < xmax and zmin < zmax")
     if "floor" in wdoc:
-        wfloor = ctx.number(wdoc["floor"], "water.floor", COORD)
+        wfloor = _read(ctx, wdoc, W["floor"], f, wdoc["floor"])
     elif basin is not None:
         wfloor = basin[0][1]
     else:

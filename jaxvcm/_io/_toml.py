@@ -3,14 +3,11 @@
 
 Every number of a scene goes through `_Ctx.number`, the one place that turns TOML values
 into floats: a value is rejected (one line naming the field) unless it is a finite number
-inside the field's documented range (`Range`, the table in `_scene_file.py`). Ranges keep
-every derived quantity finite in float32 (the renderer's precision): lengths |x| <= 1e6 m,
-so squares and areas stay far below float32's 3.4e38, and no value is stored as inf.
+inside the field's range (a `Range` of the schema, `_schema.py`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import re
@@ -19,37 +16,14 @@ from typing import Any
 
 import numpy as np
 
-CHANNELS = 3
+from ._schema import ANY, CHANNELS, COORD, DIRECTION, MAX_LENGTH, REL_SIZE, SIZE, Range
+
+__all__ = ["ANY", "CHANNELS", "COORD", "DIRECTION", "MAX_LENGTH", "REL_SIZE", "SIZE", "Range",
+           "SceneError", "key_path", "read_toml"]
 
 
 class SceneError(ValueError):
     """A malformed scene file. str() is one line: 'FILE: FIELD: problem'."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Range:
-    """The valid values of a number field: lo <= x <= hi (`lo_open`: lo < x), in `unit`."""
-
-    lo: float
-    hi: float
-    unit: str = ""
-    lo_open: bool = False
-
-    def contains(self, x: float) -> bool:
-        return (x > self.lo if self.lo_open else x >= self.lo) and x <= self.hi
-
-    def text(self) -> str:
-        u = f" {self.unit}" if self.unit else ""
-        return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]{u}"
-
-
-# ---- the ranges of the scene format (see the schema in `_scene_file.py`) ----
-MAX_LENGTH = 1e6  # metres: float32 resolves 0.06 m at 1e6 m; squares stay < 1e13
-COORD = Range(-MAX_LENGTH, MAX_LENGTH, "m")
-SIZE = Range(1e-6, MAX_LENGTH, "m")  # and >= REL_SIZE x the scene's bounding radius
-REL_SIZE = 1e-6  # 16 float32 ulps of the scene's extent: smaller shapes are not resolved
-DIRECTION = Range(-MAX_LENGTH, MAX_LENGTH)  # components; normalised, must be non-zero
-ANY = Range(-MAX_LENGTH, MAX_LENGTH)  # the default of a number without its own range
 
 
 def _fmt(v) -> str:
@@ -103,7 +77,8 @@ class _Ctx:
         if nonneg and v < 0:
             self.fail(field, f"must be >= 0, got {_fmt(v)}")
         # compare before converting: float() of an integer beyond 1.8e308 raises
-        if not (rng.lo < v if rng.lo_open else rng.lo <= v) or not v <= rng.hi:
+        if (not (rng.lo < v if rng.lo_open else rng.lo <= v)
+                or not (v < rng.hi if rng.hi_open else v <= rng.hi)):
             self.fail(field, f"must lie in {rng.text()}, got {_fmt(v)}")
         return float(v)
 
@@ -145,10 +120,10 @@ class _Ctx:
             self.fail(field, f"unknown value {v!r} (one of: {', '.join(choices)})")
         return v
 
-    def unit(self, v: Any, field: str) -> np.ndarray:
+    def unit(self, v: Any, field: str, rng: Range = DIRECTION) -> np.ndarray:
         """A direction: three numbers, not all zero, normalised (scaled by the largest
         component first, so tiny or huge components neither underflow nor overflow)."""
-        a = self.vec(v, field, rng=DIRECTION)
+        a = self.vec(v, field, rng=rng)
         m = np.max(np.abs(a))
         if not m > 0:
             self.fail(field, "must be a non-zero vector")
