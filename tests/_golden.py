@@ -3,15 +3,11 @@ renderer's behaviour unchanged.
 
 `cases()` computes a few small renders (PT, BDPT, VCM with both MIS forms, PPM, a spectral
 pass with hero dispersion) and one water fit, all through the public API with fixed keys.
-`python -m tests._golden` records them; they were recorded on commit 4dc2ea4 (the tree
-before the re-layout: `git worktree add /tmp/old 4dc2ea4`, then run it there).
-`python -m tests._golden` writes them to `tests/data/golden.npz`; `tests/transport/test_golden.py`
-recomputes them and compares. They were recorded before the package was re-laid out
-(issue: architecture), so every later change must reproduce them or explain why not.
-Changed since: `bdpt_pool` re-recorded on 2026-12-05 (issue 12) when the pdfs after a delta
-vertex began to keep their conversion to area (`_subpath` module doc, docs/design.md
-"Delta vertices and merging"): the MIS weights of its paths through the water surface
-changed, the samples did not (the other cases reproduce their old values).
+`python -m tests._golden` writes them to `tests/data/golden.npz`;
+`tests/transport/test_golden.py` recomputes them and compares. Every change to the renderer
+must reproduce them or explain why not (`bdpt_pool`, for one, weights its paths through
+the water surface with the pdfs after a delta vertex converted to area: the `_subpath`
+module doc, "Delta vertices").
 """
 
 from __future__ import annotations
@@ -117,12 +113,6 @@ if __name__ == "__main__":
 
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_numpy_dtype_promotion", "strict")
-    import jaxvcm
-
-    if not hasattr(jaxvcm, "render_pass_host"):  # recording on the tree before the re-layout
-        from jaxvcm._render import render_pass_host
-
-        jaxvcm.render_pass_host = render_pass_host
     values = cases()
     np.savez_compressed(PATH, **values)
     for k, v in values.items():

@@ -37,8 +37,8 @@ import pytest  # noqa: E402
 def _release_compiled_programs():
     """Drop in-memory compiled programs after each test module. A single pytest process
     otherwise keeps every executable of the whole suite alive (hundreds of programs, many
-    GB); CI once aborted inside XLA while serialising an executable for the persistent
-    cache late in the run. Later modules that need a program again get it back from the
+    GB), enough for XLA to abort while it serialises an executable for the persistent
+    cache late in a run. Later modules that need a program again get it back from the
     persistent cache."""
     yield
     jax.clear_caches()
@@ -47,13 +47,15 @@ def _release_compiled_programs():
 
 # ---- scheduling under pytest-xdist (`-n 2 --dist loadfile`, as CI runs the suite)
 # xdist hands out whole files in the order of their test counts (largest first), so files
-# with few but long tests (test_gradients: 2 tests, ~3 minutes; test_devices: 8) came last
-# and one worker ran them alone while the other had finished. Known long files go first
-# instead (longest first: the remaining short files then even out the two workers' ends);
-# the others keep xdist's order. Seconds: CI, cold compilation cache, before this ordering.
-_LONG_FILES = {"test_bidir.py": 296, "test_devices.py": 248, "test_merge.py": 240,
-               "test_spectral.py": 236, "test_mis_recursive.py": 188,
-               "test_gradients.py": 188, "test_fit.py": 162}
+# with few but long tests (test_gradients: 2 tests, ~3 minutes; test_devices: 8) would come
+# last, one worker running them alone after the other has finished. Known long files go
+# first instead (longest first: the remaining short files then even out the two workers'
+# ends); the others keep xdist's order. Keys: files as pytest names them (from the
+# repository root); seconds: a CI run from a cold compilation cache, in xdist's own order.
+_LONG_FILES = {"tests/transport/test_bidir.py": 296, "tests/host/test_devices.py": 248,
+               "tests/merge/test_merge.py": 240, "tests/transport/test_spectral.py": 236,
+               "tests/mis/test_mis_recursive.py": 188, "tests/transport/test_gradients.py": 188,
+               "tests/fit/test_fit.py": 162}
 
 
 @pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: no error where it is absent
@@ -69,7 +71,7 @@ def pytest_xdist_make_scheduler(config, log):
             if not self._ordered:  # the queue is complete when the first unit is assigned
                 self._ordered = True
                 queue = sorted(self.workqueue.items(),  # stable: ties keep xdist's order
-                               key=lambda kv: -_LONG_FILES.get(os.path.basename(kv[0]), 0))
+                               key=lambda kv: -_LONG_FILES.get(kv[0].replace(os.sep, "/"), 0))
                 self.workqueue.clear()
                 self.workqueue.update(queue)
             super()._assign_work_unit(node)
@@ -82,7 +84,7 @@ def _join_output_import_thread():
     """The CLI imports its output writers on a daemon thread (`_io.prefetch_imports`); let
     it finish with the test that started it, so that no import compiles concurrently with
     pytest's own at the end of a worker (CPython 3.11.7's AST recursion counter is not
-    thread-safe: 'SystemError: AST constructor recursion depth mismatch' crashed a run)."""
+    thread-safe: 'SystemError: AST constructor recursion depth mismatch' can end a worker)."""
     yield
     import threading
 

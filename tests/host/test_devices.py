@@ -1,4 +1,4 @@
-"""Passes on several devices and processes (issue 11; jaxvcm/_devices.py, _hosts.py).
+"""Passes on several devices and processes (jaxvcm/_devices.py, _hosts.py).
 
 With 4 CPU devices (`--xla_force_host_platform_device_count=4`, in a subprocess: the flag
 must be set before jax starts), `render(..., devices=N)` for N = 1, 2, 4 gives the same

@@ -1,4 +1,4 @@
-"""Passes in bounded memory (issue 11; `RenderConfig.chunks`, jaxvcm/_memory.py).
+"""Passes in bounded memory (`RenderConfig.tuning.chunks`, jaxvcm/_memory.py).
 
 A chunked pass traces its paths in `chunks` groups one after the other: chunk c's camera
 vertices merge with chunk c's photons only (eta = pi r^2 N/chunks), while every chunk's
@@ -61,7 +61,8 @@ def test_chunked_vcm_agrees_with_one_chunk():
 def test_chunks_must_divide_the_paths():
     scene = jaxvcm.load_scene(SKY, width=16, height=12)
     cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2).tuned(chunks=5)
-    with pytest.raises(ValueError, match=r"^config.tuning.chunks: 5 does not divide the pass's 192 "):
+    with pytest.raises(ValueError,
+                       match=r"^config.tuning.chunks: 5 does not divide the pass's 192 "):
         render_pass(scene, pass_key(0, 0), cfg)
 
 

@@ -1,4 +1,4 @@
-"""Hostile input (issue 14): every scene document either loads into a scene whose every
+"""Hostile input: every scene document either loads into a scene whose every
 array is finite, or fails with ONE line 'FILE: FIELD: problem' (exit 2 on the CLI); never a
 traceback, a NumPy warning, a NaN bound or a value stored as inf.
 
@@ -187,7 +187,7 @@ def test_hostile_documents(edits):
     (("lights", 2, "irradiance"), 10**400, "lights[2].irradiance"),
 ], ids=lambda v: v if isinstance(v, str) else None)
 def test_reported_holes(field, value, expect):
-    # each hole of issue 14, on the full document: one line naming exactly this field
+    # each hole found by hand, on the full document: one line naming exactly this field
     doc = copy.deepcopy(FULL)
     _set(doc, field, value)
     msg = _check_loaded_or_one_line(doc)

@@ -221,7 +221,7 @@ def test_render_tiny_default_out(tmp_path, monkeypatch, capsys):
     exr = tmp_path / "out" / "pool.exr"
     assert out.strip() == os.path.join("out", "pool.exr")
     meta = _check_outputs(exr, snapshot=False)
-    # vcm is the default algorithm (issue 4)
+    # vcm is the default algorithm
     assert meta["passes"] == 2 and meta["seed"] == 3 and meta["algorithm"] == "vcm"
     assert meta["config"]["max_depth"] == 3 and meta["scene"] == POOL
     assert meta["nonfinite"] == 0
@@ -235,10 +235,10 @@ def _start_render(out: Path, log: Path):
             "--snapshot-every", "0.5", "--out", str(out)]
     # The child starts with SIGINT at its default disposition whatever the harness does: a
     # test run started as a shell's background job ignores SIGINT, children inherit
-    # "ignored", and Python then installs no KeyboardInterrupt handler. (The CI failure of
-    # this test, a render that ran to its time limit after SIGINT, was not this: pytest-xdist
-    # workers keep the default handler. It went away with `_io._images._signals_held` no longer
-    # blocking the thread's signal mask.)
+    # "ignored", and Python then installs no KeyboardInterrupt handler. (pytest-xdist
+    # workers keep the default handler. A render that runs to its time limit after SIGINT
+    # is a different failure: a signal mask left blocked on the thread, which
+    # `_io._images._signals_held` must not do.)
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=open(log, "w"),
                             env=_env(), cwd=out.parent,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))

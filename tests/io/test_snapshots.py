@@ -1,4 +1,4 @@
-"""Snapshot sets after a SIGKILL (issue 14): OUT.exr, OUT.png and OUT.json belong together.
+"""Snapshot sets after a SIGKILL: OUT.exr, OUT.png and OUT.json belong together.
 
 The three files cannot be replaced in one atomic step; the EXR is renamed first and holds
 the JSON record in its header, the JSON (with the EXR's and PNG's SHA-256) last

@@ -4,8 +4,6 @@ water lit by the sun, seen from ABOVE the water (sun -> refraction -> floor -> r
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -78,10 +76,10 @@ def test_merging_renders_refracted_sun_seen_from_above(alg):
     # surface reaches the floor 0.24 m further along the sun (-x, +z), so it is uniform for
     # x < 0.81 and z > -0.85, and the disks (r_1 = 0.05 R = 8.1 cm, shrinking) reach
     # 0.68 m: no radius bias. 4 spp x 96 passes: SE 0.70-0.82 % over four seeds, compared
-    # at 4 SE (the 5 % bar's K, as tests/sampling/test_aim.py's aimed twin of this test). Passes
-    # rather than more spp: at 6 spp (1536 paths a side instead of 1024) the program
-    # compiled ~1.2 s longer and a pass cost 1.5x per path (measured, vcm). One compiled
-    # program per algorithm as before.
+    # at 4 SE (the 5 % bar's K, as tests/sampling/test_aim.py's aimed twin of this test).
+    # Passes rather than more spp: at 6 spp (1536 paths a side instead of 1024) the program
+    # compiles ~1.2 s longer and a pass costs 1.5x per path (measured, vcm). One compiled
+    # program per algorithm.
     sc = scene(fov=50.0)
     cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.05, spp=4)
     imgs = []
@@ -140,7 +138,8 @@ def test_photon_overflow_flag_and_host_rerun_is_exact():
     # one re-run: a power of two holding the photons (with a quarter more); the candidate
     # capacity had room and is unchanged
     assert used.tuning.photon_capacity == 1 << (n + n // 4 - 1).bit_length()
-    assert used.tuning.merge_capacity == small.tuning.merge_capacity and int(diag_h.merge_photons) == n
+    assert used.tuning.merge_capacity == small.tuning.merge_capacity
+    assert int(diag_h.merge_photons) == n
     # the default room here is every light-vertex slot (no compaction at all)
     big = small.tuned(photon_capacity=0)
     img_b, diag_b = _render_pass_jit(sc, key, big, 0)
@@ -231,7 +230,7 @@ def _ball_outside(x, r):
 
 
 def _furnace_walks(doc, sigma_s, r, D, n=1 << 16, seed=0):
-    """Analog camera random walks in S.medium_furnace's box (purely scattering: exponential
+    """Analog camera random walks in `_scenes.medium_furnace`'s box (purely scattering: exponential
     flights with sigma_s, isotropic phase, throughput 1; the walls end a walk), from the
     pinhole through uniform film points, per channel. Columns, each (mean, standard error):
       q:          the walk meets no wall within D segments (the image at max_depth D is

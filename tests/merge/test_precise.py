@@ -1,4 +1,4 @@
-"""The hash grid's `precise` condition at the user boundary (issue 12): a merging radius too
+"""The hash grid's `precise` condition at the user boundary: a merging radius too
 small for the scene's float dtype at the scene's extent is a one-line error naming
 config.radius before any pass runs (`_merge.check_precise`, called by every host driver
 through `_render.with_retry`), never a silent miss of neighbours; a float64 scene resolves

@@ -5,14 +5,15 @@ light), the floor glossy.
 
 Light tracing's technique (k, 1) is the only technique of `lt` for paths of k segments, so
 its MIS weight is 1 and its image is an unbiased estimate of the k-segment image L_k by
-itself. pt splits it over emitter hits (none: a point light) and NEE (1, k); bdpt splits L_k over (1, k) NEE, (s, t) connections and (k, 1), vcm adds the merges
-of photon y_{s-1} at z_{t-1} (s + t - 2 = k); the weights of each path sum to 1, so their
-sum estimates the same L_k. A mistake in a join's pdf at a glossy vertex breaks that sum and
-nothing else: each technique alone is still unbiased. Such a mistake was there: the vertex
-kind of a medium scattering event (KIND_MEDIUM) was 3 = MAT_GLOSSY, so every glossy vertex
-was a "medium" vertex at the joins (no cosine in its area pdfs, the volume kernel in
-merging), and L_3 came out 14 % (floor k_d only), 4.5 % (Phong only) and 10 % (both) low
-in bdpt; the unidirectional estimators (pt, lt) were right, and both MIS forms shared it.
+itself. pt splits it over emitter hits (none: a point light) and NEE (1, k); bdpt splits
+L_k over (1, k) NEE, (s, t) connections and (k, 1), vcm adds the merges of photon y_{s-1}
+at z_{t-1} (s + t - 2 = k); the weights of each path sum to 1, so their sum estimates the
+same L_k. A mistake in a join's pdf at a glossy vertex breaks that sum and nothing else:
+each technique alone is still unbiased. For example, with the vertex kind of a medium
+scattering event (KIND_MEDIUM) equal to MAT_GLOSSY (3), every glossy vertex is a "medium"
+vertex at the joins (no cosine in its area pdfs, the volume kernel in merging), and L_3
+comes out 14 % (floor k_d only), 4.5 % (Phong only) and 10 % (both) low in bdpt, while the
+unidirectional estimators (pt, lt) stay right and both MIS forms share the error.
 
 The floors: the glossy model with only its Lambertian lobe (k_d 0.8, k_s 0: a test that the
 glossy code path equals the diffuse one in the weights) and both lobes (k_d 0.4, k_s 0.4,

@@ -12,7 +12,7 @@ the delta water surface, distance sampling in the water), scenes/cornell_point.t
 (point light, one-sided diffuse walls, one-sided glossy floor with paths steered into
 its Phong lobe, delta spheres) and scenes/pool_sky.toml (a light at infinity: escaped
 emitter hits, next-event estimation to the sky, solid-angle pdfs of y_0), and with aimed
-emission (issue 13, `AIMED`): scenes/pool_sun.toml with `aim = 0.9` (a delta light at
+emission (`AIMED`): scenes/pool_sun.toml with `aim = 0.9` (a delta light at
 infinity), once with the default 1 x 1 map over the footprint and once with a hand-made
 [4, 4] map with zero cells over a smaller rectangle, and scenes/pool_sky.toml with
 `aim = 0.5`; their paths' first vertex x_1 lies on a line that crosses the water's plane
@@ -38,7 +38,7 @@ in (or just beside) the aimed rectangle three times in four, float64:
    vertex and unit throughputs, recovering each merge's MIS weight from its value, and
    comparing the weights (bpm: the merges dominate the sums) with the exact oracle of
    tests/mis/test_mis.py (`oracle_vcm`), which must sum to one with the emitter hit's;
-5. planted mistakes (the old KIND_MEDIUM = MAT_GLOSSY bug, the cosine dropped at the
+5. planted mistakes (KIND_MEDIUM equal to MAT_GLOSSY, the cosine dropped at the
    receiving vertex, the BSDF pdf with wo and wi swapped, the water's distance sampling
    with the wrong end, the pinhole pdf with cos^2, the emission pdf of the reversed
    direction, the sky's pdf of the reversed direction; aimed: the emission pdf without
@@ -98,7 +98,7 @@ RTOL = 1e-9
 FOV = {"pool": 42.0, "cornell_point": 45.0, "pool_sky": 42.0}
 SCENES = list(FOV)
 BOX_AND_POOL = ["pool", "cornell_point"]  # what the planted mistakes run on
-# Aimed emission (issue 13, `_lights.aimed_pdf`): name -> (scene file, the aim of its one
+# Aimed emission (`_lights.aimed_pdf`): name -> (scene file, the aim of its one
 # light, (aim_map, aim_rect) or None for the defaults: a 1 x 1 map over the footprint).
 # The hand-made map: [4, 4] cells (rows z, columns x) with zero cells, over a rectangle
 # smaller than the footprint [-1, 1]^2 and off its centre, so that the lines through the
@@ -203,7 +203,7 @@ def pinhole_pdf(sc, name, w):
 
 
 def aimed_density(sc, d, p):
-    """The aimed part of an infinite light's emission (issue 13) per unit area
+    """The aimed part of an infinite light's emission per unit area
     perpendicular to d, for the line of direction d through p (NumPy, from the scene's
     numbers alone): the line crosses the water's plane y = level at c; if c lies in the
     rectangle [x0, x1) x [z0, z1) of `aim_rect`, in cell (i, j) of the [G, G] `aim_map`
@@ -383,7 +383,7 @@ def aimed(sc):
 
 
 def _aimed_vertex(sc, rng, d):
-    """For an aimed light (issue 13), a vertex x_1 on a line of the light's direction d
+    """For an aimed light, a vertex x_1 on a line of the light's direction d
     (the way light travels) that crosses the water's plane at a point c drawn uniformly
     over `aim_rect` widened by 15 % on each side: where the line meets the basin from
     above the footprint (a surface vertex), or a point of the line in the water (a medium
@@ -802,7 +802,7 @@ def test_fixed_paths_cover_every_family():
     assert COVER["phong lobe"] >= 3 and COVER["medium"] >= 10, COVER
 
 
-# ---------------------------------------------------------------- aimed emission (issue 13)
+# ---------------------------------------------------------------- aimed emission
 # the aimed scenes' fixed paths: 16 first vertices x_1 (x_1 depends on the seed alone), so
 # that their lines cross the water's plane inside and outside each scene's rectangle and in
 # zero cells of the hand-made map
@@ -936,7 +936,8 @@ def _map_transposed(orig):  # rows along x, columns along z
 
 # name -> (scenes, module, attribute, the mistake given the original)
 PLANTED = {
-    # the bug this file was written after: every glossy vertex a medium vertex at the joins
+    # a medium vertex's kind equal to the glossy material's: every glossy vertex a medium
+    # vertex at the joins
     "glossy_is_medium": (["cornell_point"], SP, "KIND_MEDIUM", lambda orig: MAT_GLOSSY),
     "cosine_dropped": (BOX_AND_POOL, SP, "to_area", _no_cosine),
     "bsdf_pdf_swapped": (BOX_AND_POOL, SP, "bsdf_pdf", _swapped),
@@ -945,7 +946,7 @@ PLANTED = {
     "emission_pdf_backwards": (["pool"], L, "emission_pdf_dir", _backwards),
     # the sky's pdf of the direction away from the sky (emitter hits, next-event estimation)
     "sky_direction_flipped": (["pool_sky"], L, "light_point_pdf", _flipped),
-    # aimed emission (issue 13): the emission pdf of a light at infinity without its aimed
+    # aimed emission: the emission pdf of a light at infinity without its aimed
     # part (the bounding disk's alone), the aimed density per unit area of the water's
     # plane instead of per unit perpendicular area (|d_y| dropped), the map's cells looked
     # up transposed
@@ -991,7 +992,8 @@ def _disk_everywhere(orig):
 PLANTED_MERGE = {
     # A(z_{t-2}) and B(y_{s-1}) through z with the scattering directions the wrong way round
     "merge_reverse_pdf_swapped": (["pool"], _merge, "reverse_pdf", _swap_directions),
-    # the surface disk at medium vertices too (the kernel the old KIND_MEDIUM bug mixed up)
+    # the surface disk at medium vertices too (the kernel a KIND_MEDIUM equal to MAT_GLOSSY
+    # would pick at glossy vertices)
     "merge_disk_kernel_in_medium": (["pool"], _merge, "kernel_size", _disk_everywhere),
 }
 

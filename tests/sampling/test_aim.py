@@ -1,8 +1,8 @@
-"""Aimed emission (issue 13, first part): sun and sky photons aimed at the water's footprint.
+"""Aimed emission: sun and sky photons aimed at the water's footprint.
 
 `[[lights]] aim = P` sends a fraction P of a sun's or sky's photons through the water's
 footprint (the caustic caster: the line crosses the plane y = level at a point drawn from
-`Lights.aim_map`, uniform by default) and the rest over the scene's bounding disk as before.
+`Lights.aim_map`, uniform by default) and the rest over the scene's bounding disk as without aiming.
 The emission's perpendicular-area pdf is the mixture
     p(line) = (1 - P) / (pi R^2) + P [crossing in F] G^2 w_ij / (sum w A_F |d_y|),
 and every technique's MIS reads it through `_lights.emission_pdf_dir` (light tracing's and
@@ -15,7 +15,8 @@ Tests: (1) the sampler draws the density the pdf states (chi-square of the cross
 on the water's plane, the sun) and the Monte Carlo identities E[1 / p] = pi R^2 and
 E[[in F] / p] = A_F |d_y| per direction (sun and sky); (2) closed forms with aiming on:
 the refracted sun on the floor seen from above (ppm, vcm: merging is the only technique;
-tests/merge/test_merge.py's value) and from under the water (lt: tests/transport/test_bidir.py's value);
+tests/merge/test_merge.py's value) and from under the water (lt:
+tests/transport/test_bidir.py's value);
 (3) the ground beside the pool, lit by the sun outside the footprint, renders the same
 aimed or not (vcm, ppm). Every comparison asserts a standard error small enough to see 5 %
 at 4 standard errors.
@@ -165,9 +166,9 @@ def test_aimed_merging_renders_the_refracted_sun_seen_from_above(alg, aim):
 
 
 def test_aimed_light_tracing_sees_the_refracted_sun_from_under_water():
-    # tests/transport/test_bidir.py's scene and closed form (camera under flat water, 0.6 m above the
-    # floor; only light tracing makes sun -> surface -> floor -> camera): the image mean is
-    # L_f E[exp(-sigma_a h / cos phi)] over the pinhole's rays.
+    # tests/transport/test_bidir.py's scene and closed form (camera under flat water, 0.6 m
+    # above the floor; only light tracing makes sun -> surface -> floor -> camera): the image
+    # mean is L_f E[exp(-sigma_a h / cos phi)] over the pinhole's rays.
     from jaxvcm._materials import fresnel_dielectric
     d, h, a, eta, E = 1.0, 0.6, 0.7, 1.33, 3.0
     sigma_a = np.array([0.3, 0.1, 0.05])
@@ -192,9 +193,9 @@ def test_aimed_light_tracing_sees_the_refracted_sun_from_under_water():
 
 # ---------------------------------------------------------------- (3) light outside the aim
 def _pool_and_ground(aim):
-    # The flat sunlit pool of tests/transport/test_bidir.py (footprint [-1, 1]^2, floor 1 m down) and,
-    # beside it, dry white ground at the water's level (x in [1, 2.5]) that the sun lights
-    # directly: lines that never cross the footprint. The camera, 2 m up, sees the pool's
+    # The flat sunlit pool of tests/transport/test_bidir.py (footprint [-1, 1]^2, floor 1 m
+    # down) and, beside it, dry white ground at the water's level (x in [1, 2.5]) that the
+    # sun lights directly: lines that never cross the footprint. The camera, 2 m up, sees the pool's
     # floor through the surface (left half, merging only) and the ground (right half).
     doc = S.flat_water_sun(1.0, (0.3, 0.1, 0.05), 1.33, 0.7, 3.0, SUN, 3.0, fov=50.0, w=8, h=8)
     doc["camera"].update(position=[1.0, 2.0, 0.0], target=[1.0, -1.0, 0.0])
@@ -314,7 +315,7 @@ def test_view_guided_flat_pool_equals_the_closed_form(alg):
 
 
 def test_cli_aim_view(tmp_path, capsys):
-    # scenes/pool_wide.toml (issue 13's wide pool) renders with --aim-view; a scene without
+    # scenes/pool_wide.toml (the wide pool) renders with --aim-view; a scene without
     # an aimed light is refused in one line with exit status 2
     from jaxvcm.cli import main
     out = str(tmp_path / "wide.exr")

@@ -1,6 +1,5 @@
 """Work queues (`_queue`): compaction changes the work, never the result."""
 
-import dataclasses
 
 import jax
 import jax.numpy as jnp

@@ -53,7 +53,7 @@ def test_sphere_furnace_all_algorithms_per_path_length(alg, spp):
     # techniques for that k, must reproduce it. Checking each k separately catches a
     # wrong MIS weight even where the total would hide it. spp = 4 (8x8 pixels, the same
     # 256 light paths): light-tracing splats carry 1/N_light already and must not be
-    # averaged over spp again (an earlier bug made LT spp times too dark).
+    # averaged over spp again (doing so would make LT spp times too dark).
     Le, a, D = np.array([0.5, 1.0, 2.0]), np.array([0.3, 0.6, 0.9]), 4
     w = 16 if spp == 1 else 8
     scene = jaxvcm.scene_from_dict(S.sphere_furnace(Le, a, w=w, h=w))
@@ -158,12 +158,11 @@ def test_pt_bdpt_and_vcm_agree_on_pool(name):
     # by hitting the light through two refractions (rare, huge samples: their standard
     # error says nothing; measured 5 % at 16 x 1 spp, 44-50 % at 24 x 16). Both comparisons
     # here have pt on one side, so the pool keeps the block comparison within the standard
-    # errors (16 passes of 1 spp, as before), without the 5 % assertion (`heavy`). vcm
-    # itself merges those paths and is not heavy-tailed there (its tail on this scene was a
-    # MIS bug at delta vertices, now fixed: jaxvcm/_subpath.py, "Delta vertices"); it is
-    # checked at the 5 % bar against ppm, paired, by test_vcm_and_ppm_agree_on_pool, and the
-    # pool's geometry and water by pool_sky here and the caustic reference
-    # (tests/transport/test_caustics.py).
+    # errors (16 passes of 1 spp), without the 5 % assertion (`heavy`). vcm itself merges
+    # those paths and is not heavy-tailed there (given the pdfs after delta vertices of
+    # jaxvcm/_subpath.py, "Delta vertices"); it is checked at the 5 % bar against ppm,
+    # paired, by test_vcm_and_ppm_agree_on_pool, and the pool's geometry and water by
+    # pool_sky here and the caustic reference (tests/transport/test_caustics.py).
     scene = S.shipped_scene(name, 16, 16)
     if name == "pool_sky":
         assert_algorithms_agree(scene, ("pt", "bdpt", "vcm"), 4, seed=11, passes=32, what=name)

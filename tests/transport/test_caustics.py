@@ -27,8 +27,8 @@ Tolerance per tile (tile means over 8 x 8 pixels of a 32 x 32 image, every chann
   * 2% ref: the reference's own accuracy at this tile size (the histogram + supersampled
     camera agrees with the histogram-free pinhole splat to < 1%, tested below).
 The whole image's mean is held to the 5% bar: its standard error below 1.25% of the value.
-For that VCM's sun aims 90% of its photons at the water's footprint (`aim`, issue 13:
-the same expectation, tests/sampling/test_aim.py; the rest still cover the scene's bounding disk),
+For that VCM's sun aims 90% of its photons at the water's footprint (`aim`: the same
+expectation, tests/sampling/test_aim.py; the rest still cover the scene's bounding disk),
 which most of them otherwise miss: SE of the image mean ~0.5% after 4P passes (1.0%
 without aiming at 4P = 96).
 """

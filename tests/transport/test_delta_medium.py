@@ -1,5 +1,5 @@
 """VCM and BDPT on paths through a delta interface AND a scattering medium, against path
-tracing (issue 12, "tests with teeth").
+tracing.
 
 The scene: a 1 m x 1 m pool, 0.6 m deep, built from rectangles (white Lambertian floor and
 three walls, albedo 0.6; the fourth wall below the water line is a rect light facing into
@@ -45,11 +45,7 @@ the surface, by a few per cent.
 
 Sizes: 8 x 8 pixels, 16 spp: N = 1024 paths per side, so PT's camera subpaths (1024 lanes)
 and BDPT / VCM's joint trace (2N = 2048 lanes) each run as one dense round of
-`_subpath.trace`. (Found while writing this test, reported, not fixed here: above 2048
-lanes the queued trace runs ceil(max_depth L / W) rounds of W lanes, too few when the last
-lanes start late, and their later vertices are never traced. At 12 x 12 x 16 spp = 2304
-lanes the same key gives different images with trace_split 1 and 8: PT 4-5 % low on this
-scene, 1.8055 instead of 1.875 in a sphere furnace of albedo 0.5 at max_depth 4.)
+`_subpath.trace`.
 
 Measured (PASSES = 160 per render; pt seed 1, bdpt seed 2, vcm seed 3; ratio alg / pt of
 the left ("near") and right ("far") halves, R G B; max |diff| / combined SE):
@@ -65,8 +61,7 @@ Teeth: sigma_s x 1.1 in the bdpt / vcm render only (PT unchanged) fails every ca
 VCM's merging bias shows (above: near 0.982, far 1.016-1.020, 3.3 SE), so the radius stays
 small.
 Runtime: 3 compiled programs (pt, bdpt, vcm; the views share them) and 6 renders of 160
-passes: 65 s CPU with a cold compilation cache (145 s wall on the shared 2-core machine at
-load 10), 44 s CPU with XLA's persistent cache warm.
+passes: 65 s CPU with a cold compilation cache, 44 s CPU with XLA's persistent cache warm.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""Behaviour unchanged: fixed-key renders and a fit against the values recorded before the
-package was re-laid out (`tests/_golden.py`, `tests/data/golden.npz`).
+"""Behaviour unchanged: fixed-key renders and a fit against recorded values
+(`tests/_golden.py`, `tests/data/golden.npz`).
 
 Tolerance: the recorded values came from the same code on the same CPU backend, so a pure
 refactor reproduces them bit for bit; we allow float32 round-off (rtol 1e-5 of the image's

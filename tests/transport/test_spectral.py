@@ -588,7 +588,7 @@ def test_sky_floor_reference_matches_transport_quadrature():
 
 @pytest.mark.parametrize("depth", [1.0, 4.0], ids=["1m", "4m"])
 def test_white_floor_under_d65_sky_matches_colour_science(depth):
-    # The setup: a white Lambertian floor (albedo 1) at the bottom of a wide flat pool
+    # The setup: a white Lambertian floor (albedo 1) at the bottom of a wide flat pool
     # of pure water (depth 1 or 4 m, scattering off, index n(550) = 1.33468) under a uniform
     # white sky (D65, Y = 1); camera under water 0.3 m above the floor looking straight down
     # (fov 2 deg). Per wavelength the pixel is R(lambda) = L_f(a_w(lambda)) exp(-a_w h) with
