@@ -1,5 +1,5 @@
-"""Photons where the camera looks (issue 13): a pilot of camera paths before the render
-gives the aimed lights' footprint map and a merge radius from the pixel footprint.
+"""Photons where the camera looks: a pilot of camera paths before the render gives the
+aimed lights' footprint map and a merge radius from the pixel footprint.
 
 `[[lights]] aim = P` (`_lights.aimed_pdf`) sends a fraction P of a sun's or sky's photons
 through the water's footprint, uniformly by default. In a large pool seen through a narrow
@@ -13,9 +13,10 @@ from, widened by what the waves' slopes can tilt it; for the sky, the vertical p
 widened by depth x tan(critical angle); both by a pixel's footprint and the first pass's merge
 radius (a gather point reaches photons that far beyond what it sees). `Lights.aim_rect`
 becomes the casters' widened box (clipped to the footprint) and `Lights.aim_map` the
-[G, G] cells of it within reach of a caster (plus one cell); the disk part of the mixture (1 - P) still covers every line, so
-light that starts elsewhere (reflected off a wall, multiple bounces, wave slopes beyond
-the widening) is still emitted and the estimators stay unbiased.
+[G, G] cells of it within reach of a caster (plus one cell); the disk part of the mixture
+(1 - P) still covers every line, so light that starts elsewhere (reflected off a wall,
+multiple bounces, wave slopes beyond the widening) is still emitted and the estimators
+stay unbiased.
 
 The merge radius of the first pass follows the pixel footprint at the same vertices:
 r_1 = `radius_pixels` x the median over paths of (distance from the pinhole along the
@@ -51,6 +52,10 @@ DEFAULT_HORIZON = 10_000  # passes the footprint radius must stay resolvable for
 
 
 class ViewGuide(NamedTuple):
+    """What the pilot pass of `view_guide` found: the aimed lights' map and a merge radius.
+
+    With the figures they come from: the median pixel footprint and the path counts."""
+
     aim_map: np.ndarray  # [G, G] weights of the rectangle's cells (rows z, columns x)
     aim_rect: np.ndarray  # [4] x0, x1, z0, z1 of the water's plane the map covers
     radius: float  # first-pass merge radius, as a fraction of the bounding radius
@@ -114,9 +119,17 @@ def _casters(scene: Scene, q: np.ndarray, level: float):
 def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
                grid: int = DEFAULT_GRID, radius_pixels: float = DEFAULT_RADIUS_PIXELS,
                alpha: float = RenderConfig.alpha, horizon: int = DEFAULT_HORIZON) -> ViewGuide:
-    """The pilot's map and radius (module doc); `key`: the pilot's key (default: a fixed
-    key no pass uses). The radius is at least what the hash grid resolves in the scene's
-    float dtype for `horizon` passes of the schedule with `alpha`."""
+    """Trace a pilot pass of camera paths: the aimed lights' footprint map and a merge radius.
+
+    The pilot's camera subpaths (its own key, so the map is independent of every render
+    pass's samples) find the first non-delta vertex of each path that lies under the
+    water; the surface points that cast caustics there, widened by what the waves' slopes,
+    a pixel's footprint and the merge radius reach, give the map's rectangle and its
+    cells. The radius follows the median pixel footprint at those vertices
+    (`radius_pixels` pixels), as a fraction of the scene's bounding radius, and is at
+    least what the hash grid resolves in the scene's float dtype for `horizon` passes of
+    the schedule with `alpha`. `key`: the pilot's key (default: a fixed key no pass
+    uses)."""
     if not scene.water.enabled:
         raise ValueError("aim_at_view: the scene has no [water] footprint to aim at")
     if key is None:
@@ -173,9 +186,11 @@ def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
 
 def aim_at_view(scene: Scene, config: RenderConfig | None = None, key=None, **kw
                 ) -> tuple[Scene, RenderConfig, ViewGuide]:
-    """`scene` with its aimed lights' map from `view_guide`, and `config` (default
-    RenderConfig()) with the footprint radius. The scene must have an aimed light
-    (`[[lights]] aim > 0`)."""
+    """Aim a scene's photons where the camera looks, and size the merge radius to match.
+
+    Returns (`scene` with its aimed lights' map from `view_guide`, `config` (default
+    RenderConfig()) with the footprint radius, the `ViewGuide`). The scene must have an
+    aimed light (`[[lights]] aim > 0`)."""
     if not any(a > 0 for a in scene.lights.aim):
         raise ValueError("aim_at_view: the scene has no aimed light (set [[lights]] aim)")
     config = config or RenderConfig()

@@ -19,7 +19,8 @@ def _cache_dir() -> str:
 
 
 def enable_compilation_cache(cache_dir: str | None = None) -> None:
-    """Persistent XLA compilation cache, so repeated CLI renders do not recompile.
+    """Turn on JAX's persistent compilation cache, so that repeated runs do not recompile.
+
     Leaves an already configured cache (e.g. by a test harness) alone.
 
     `cache_dir` defaults to $JAXVCM_CACHE_DIR, else $XDG_CACHE_HOME/jaxvcm/jax (XDG_CACHE_HOME

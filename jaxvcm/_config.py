@@ -1,4 +1,6 @@
-"""Static render configuration. Hashable: passed to `jax.jit` as a static argument."""
+"""Static render configuration: the estimator (`RenderConfig`), the techniques of each
+algorithm (`TECHNIQUES`) and how a pass lays out its work (`Tuning`). Hashable: passed to
+`jax.jit` as a static argument."""
 
 from __future__ import annotations
 
@@ -7,12 +9,16 @@ import dataclasses
 import jax.numpy as jnp
 
 ALGORITHMS = ("pt", "lt", "bdpt", "ppm", "bpm", "vcm")  # flags of the one core
+"""The algorithm names `RenderConfig.algorithm` accepts: each is a set of techniques of the
+one bidirectional core (`TECHNIQUES`)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Techniques:
-    """The techniques an algorithm enables on the one core (the only algorithm -> technique
-    table: the integrator runs these stages, both MIS forms enable these techniques).
+    """The techniques an algorithm enables on the one bidirectional core.
+
+    `TECHNIQUES` is the only algorithm -> technique table: the integrator runs these
+    stages, and both MIS forms weight over these techniques.
 
     emitter_hits:  s = 0, the camera subpath hits an emitter or escapes to the sky;
     nee:           s = 1 with t >= 2, next-event estimation;
@@ -64,6 +70,7 @@ TECHNIQUES = {
     "vcm": Techniques(emitter_hits=True, nee=True, light_tracing=True, connections=True,
                       merging="all"),
 }
+"""The techniques each algorithm enables (`Techniques`), by algorithm name."""
 MIS_HEURISTICS = ("balance", "power")
 MIS_FORMS = ("explicit", "recursive")
 MAX_DEPTH = 64  # path segments; subpaths are [depth, paths] arrays, so memory grows with it
@@ -125,8 +132,9 @@ TUNING_FIELDS = tuple(f.name for f in dataclasses.fields(Tuning))
 
 @dataclasses.dataclass(frozen=True)
 class RenderConfig:
-    """The estimator: every setting that changes what a pass computes. Hashable: passed to
-    `jax.jit` as a static argument.
+    """The estimator: every setting that changes what a pass computes.
+
+    Hashable: passed to `jax.jit` as a static argument.
 
     algorithm:   which techniques of the one core are enabled (`TECHNIQUES`).
     max_depth:   maximum number of path segments from the camera to the light

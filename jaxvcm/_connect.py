@@ -66,7 +66,7 @@ def _sky_id(scene: Scene) -> int:
 
 # ---------------------------------------------------------------- the pdfs at the joins
 class JoinPdfs(NamedTuple):
-    """The four pdfs a technique (s, t) re-evaluates at its join (`_path.path_pdfs`), all
+    """The four pdfs a technique (s, t) re-evaluates at its join (`_path.reverse_pdf`), all
     RR-free, in the area (surface) / volume (medium) measure of the vertex they belong to,
     times the water's distance-sampling factor of the segment that reaches it
     (`_subpath.to_area`):
@@ -226,8 +226,8 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
     """The (s, t >= 2) connections [J, N, C] as one work queue over (technique, lane)
     items: only the pairs of live, non-delta vertices run the kernel (the shadow ray, both
     scattering factors, the four join pdfs and the join weight), each gathering its four
-    vertices and its entries of the MIS state. In the pool about one light vertex in six
-    survives its first bounce, so a few percent of the J x N pairs are live."""
+    vertices and its entries of the MIS state. In a pool few light vertices survive their
+    first bounce, so few of the J x N pairs are live."""
     N = cam.A.shape[1]
     J = len(ss)
     dt = cam.A.dtype
@@ -262,9 +262,9 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
 
     jj = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
-    # (a first queue that drops the pairs whose segment crosses the water surface, 23 % of
-    # the live pairs in the pool, cost more than it saved: docs/design.md)
-    # rounds of N items: a few live pairs per path at most in the shipped scenes
+    # every live pair is queued, those whose segment crosses the water surface included
+    # (a first queue to drop them costs more than it saves); rounds of N items: a few live
+    # pairs per path at most in the shipped scenes
     return masked_map(item, ok, (jj, nn), 0.0, J, summed=summed)
 
 
@@ -272,7 +272,7 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
                          verts: subpath.Vertex, parts, etas):
     """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
     only the live vertices that see emission (a light, or the sky after an escape) evaluate
-    the join; in the pool about one camera vertex in 200."""
+    the join; in a pool few camera vertices do."""
     N = cam.A.shape[1]
     D = cfg.max_depth
     dt = cam.A.dtype
@@ -301,7 +301,7 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
     ii = jnp.broadcast_to(jnp.arange(D, dtype=jnp.int32)[:, None], (D, N))
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (D, N))
     # narrow rounds (N / 8 items): a round costs its width whatever it holds, and the hits
-    # are few (the pool: ~1 in 200 camera vertices; with a sky, up to one per path)
+    # are few (in a pool; with a sky, up to one per path)
     return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
 
 
@@ -309,7 +309,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
                        etas):
     """Next-event estimation [J, N, C] from z_j (j = js) as one work queue over (vertex,
     lane) items: only live, non-delta camera vertices sample a light, trace the shadow ray
-    and evaluate the join (in the pool about 40 % of the J x N slots)."""
+    and evaluate the join."""
     N = cam.A.shape[1]
     J = len(js)
     dt = cam.A.dtype
@@ -326,8 +326,8 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
 
     def shadow_ray(i, n, z):  # the light sample of item (i, n) at z and its shadow ray
         p, nz, med = z.p, z.n, z.medium
-        # the light sample's uniforms hashed for this item alone (`_uniforms`: the dense
-        # table hashed every (depth, lane) slot, dead or alive)
+        # the light sample's uniforms hashed for this item alone (`_uniforms`), not the
+        # dense table of every (depth, lane) slot, dead or alive
         u = u_nee.at(i, n) if isinstance(u_nee, Uniforms) else u_nee[i, n]
         ls = lights.sample_light(scene, p, u[0], u[1], u[2])
         inf = ~jnp.isfinite(ls.dist)
@@ -337,9 +337,8 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         tmax = jnp.where(inf, jnp.inf, vec.length(y - oz) * (1.0 - 1e-4))
         return ls, inf, dist, oz, tmax
 
-    # (every vertex read from the trace's packed table: the per-field columns [D+1, N]
-    # given to these loops were each a strided copy of the whole table, ~2.3 ms apiece
-    # per PT pass at 256x256)
+    # (every vertex is read from the trace's packed table, `vertex_table`: per-field
+    # columns [D+1, N] would each be a strided copy of the whole table)
     def worth(i, n):  # False: the item contributes 0 whatever the rest computes
         ls, _, _, oz, tmax = shadow_ray(i, n, cam_at(j_of[i], n))
         return ls.valid & ~geometry.crosses_water(water, oz, ls.wi, 0.0, tmax, cfg.march_steps)
@@ -357,7 +356,7 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
         # ---- pdfs at the join ----
         A0, (A_s, A_s1, B0, B_s2) = nee_join_pdfs(scene, z, zp, ls, wseg)
         # the fresh light sample as a one-vertex light subpath: its entries in closed form
-        # (`start_entries`; building its partials per item cost a third of this stage)
+        # (`start_entries`), not built per item from a one-vertex subpath
         s1 = jnp.asarray(1, jnp.int32)
         mj = mis_form(cfg)
         Le_ = mj.start_entries(cfg, sg(A0), is_delta_l, sg(etas[0]))
@@ -372,10 +371,10 @@ def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, pa
     if water.enabled:
         # first the light samples alone: a shadow ray whose ends lie on opposite sides of
         # the water surface is blocked (a delta interface), known from two height
-        # evaluations (`crosses_water`: the march's own answer); in the pool 83 % of the
-        # live NEE items (55 % in pool_sun), which then skip the shadow ray and the join
+        # evaluations (`crosses_water`: the march's own answer); such items (most live
+        # ones in a pool) skip the shadow ray and the join
         want = want & masked_map(worth, want, (ii, nn), False, 2 * J)
-    # rounds of N / 2 items (about 2.4 live NEE vertices per path in the pool)
+    # rounds of N / 2 items (a few live NEE vertices per path in the shipped scenes)
     return masked_map(item, want, (ii, nn), 0.0, 2 * J)
 
 
@@ -383,8 +382,7 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
                           cam_o: Vec3, parts, idx, etas):
     """Light tracing (pixel [J, N], value [J, N, C]) from y_i (i = idx) as one work queue
     over (vertex, lane) items: only y_0 of a finite light and the live, non-delta light
-    vertices project onto the film (in the pool about one light vertex in six survives
-    its first bounce)."""
+    vertices project onto the film."""
     N = lig.A.shape[1]
     J = len(idx)
     dt = lig.A.dtype
@@ -439,7 +437,7 @@ def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lig
     kk = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
     # first the cheap part: a light vertex outside the camera's frustum, or seen through
-    # the water surface (`crosses_water`, a delta interface), contributes nothing; in the
-    # pool that leaves 8 % of the live light vertices for the shadow ray and the join
+    # the water surface (`crosses_water`, a delta interface), contributes nothing; in a
+    # pool that leaves few of the live light vertices for the shadow ray and the join
     ok = ok & masked_map(worth, ok, (kk, nn), False, J)
     return masked_map(item, ok, (kk, nn), (0, 0.0), J)

@@ -1,7 +1,7 @@
-"""Passes on several devices at once (issue 11): `jax.shard_map` over a 1-D mesh, one whole
-pass per device, so every device runs the same single-pass program the one-device render
-compiles (no `vmap` over passes: that would turn the queues' `cond`s into selects,
-docs/design.md). The mesh spans the devices of every process of a multi-process render
+"""Passes on several devices at once: `jax.shard_map` over a 1-D mesh, one whole pass per
+device, so every device runs the same single-pass program the one-device render compiles
+(no `vmap` over passes: that would turn the work queues' `cond`s into selects, `_queue`).
+The mesh spans the devices of every process of a multi-process render
 (`_hosts`): the first N local devices of each process, in process order.
 
 A batch is G = len(mesh devices) passes with keys `pass_key(seed, i)` and pass indices i
@@ -10,7 +10,7 @@ passes are spread over devices and processes. The images stay on the devices: ea
 adds its pass into its own running sum (float32, Kahan-compensated, so the sum's rounding
 error does not grow with the pass count), and only the sums' total (`DeviceSum.total`, a
 `psum` over the mesh) comes back, for a snapshot or the end. Images therefore equal the
-one-device render's to float32 rounding of the sums (tests/test_devices.py: rtol 1e-5),
+one-device render's to float32 rounding of the sums (tests/host/test_devices.py),
 not bit for bit: the one-device driver adds per-pass images on the host in float64. A
 partial last batch masks the passes it does not need. Merge-capacity overflow on any device
 re-runs the whole batch with more room (`with_retry`) before anything is added.

@@ -1,12 +1,13 @@
-"""A compiler workaround: values that must be computed once.
+"""Values computed once, as their own kernel, however many fusions read them.
 
-XLA:CPU fuses an elementwise producer into every consumer fusion that reads it, and it
-does so for transcendental producers too: a sampled direction's cosine and sine, or a
-wave's derivative, were recomputed in each fusion that reads a component, a kind's
-select or a column of the trace's packed state (in a PT pass of the pool up to eight
-copies, ~10 % of the pass). `jax.lax.optimization_barrier` does not stop it (the CPU
-pipeline removes barriers before fusion), but a dot does: XLA never fuses a producer
-into a `dot`, so the producer becomes its own kernel and its result a buffer.
+The CPU backend fuses an elementwise producer into every consumer fusion that reads it,
+transcendental producers included, so a sampled direction's cosine and sine or a wave's
+derivative would be evaluated again in each fusion that reads a component, a kind's
+select or a column of the trace's packed state. A product with the identity keeps them
+apart: XLA does not fuse a producer into a `dot`, so the producer becomes its own kernel
+and its result a buffer (`jax.lax.optimization_barrier` does not serve here, as the CPU
+pipeline removes barriers before fusion). docs/design/performance.md has the wider
+picture.
 """
 
 from __future__ import annotations

@@ -127,8 +127,8 @@ STEEP_EXTRA_REFINE = 2  # Illinois steps added when the bracket is the whole box
 
 def _f_rounding(w: Water, o: Vec3, d: Vec3, t0, x0, z0):
     """A bound on the rounding of f(t0) = o_y + t0 d_y - h(x0, z0): below it, o is on the
-    surface. The waves' terms summed one by one, elementwise (as `water_height`: a
-    reduction over the short waves axis ran as a slow YNNPACK kernel of its own)."""
+    surface. The waves' terms summed one by one, elementwise (as in `water_height`: not a
+    reduction over the short waves axis, which would be a kernel of its own on the CPU)."""
     eps = jnp.finfo(o.x.dtype).eps
     s = jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level)
     for i in range(w.n_waves):
@@ -232,10 +232,9 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
 
     def illinois(_, c):
         # software-pipelined: the carry holds the new point m and f(m), evaluated by the
-        # previous iteration, so f (the waves' sines) is the body's only expensive output.
-        # With f(m) computed in the body and used by the five bracket updates, XLA's CPU
-        # backend fuses a copy of f into each update (five times the sines: 3.3 ms
-        # against 0.7 ms per 8192 rays); the values are the same bit for bit.
+        # previous iteration, so f (the waves' sines) is the body's only expensive output
+        # (computed in the body and read by the five bracket updates, f would be fused
+        # into each of them by the CPU backend); the values are the same bit for bit.
         a, b, fa, fb, side = keep(*c)
         m = secant(a, b, fa, fb)
         return a, b, fa, fb, side, m, f(m)
@@ -295,10 +294,9 @@ def water_hits(w: Water, o: Vec3, d: Vec3, want, steps: int, split: int) -> Arra
     and the ray meets the surface's box (`meets_slab`); inf elsewhere, which is
     `intersect_water`'s own answer for a ray that misses the box. The rays that meet it go
     through a work queue (`_queue.masked_map`), because under `vmap` every lane would pay
-    for the march and the refinement: in a 256x256 depth-8 pass of the pool about half the
-    rays never meet the box (46 % of VCM's, 54 % of PT's; `docs/design.md`). The `steep`
-    rays among them are queued first and bracketed by the box alone (no march): in the
-    pool most are steep (camera rays, and diffuse bounces off the floor)."""
+    for the march and the refinement, and in a pool a large share of the rays never meet
+    the box. The `steep` rays among them are queued first and bracketed by the box alone
+    (no march): in a pool most are steep (camera rays, and diffuse bounces off the floor)."""
     meet = want & jax.vmap(meets_slab, in_axes=(None, 0, 0, None, None))(w, o, d, 0.0, INF)
     return masked_map(lambda o_, d_: intersect_water(w, o_, d_, 0.0, INF, steps), meet,
                       (o, d), INF, split,

@@ -25,7 +25,7 @@ and the cell is 2 r (1 + 2**-7), so the per-axis interval [q - r', q + r'] (r' =
 2**-8) > r, covering any rounding of the test) is narrower than a cell by a margin that
 absorbs the rounding of the cell coordinates: the 2x2x2 block provably holds every point
 that passes the test, as long as `grid.precise` holds (coordinates within ~4000 cells of
-0 in float32, ~2 10**12 cells in float64). See docs/hashgrid.md.
+0 in float32, ~2 10**12 cells in float64). See docs/design/merging.md.
 """
 
 from __future__ import annotations
@@ -50,7 +50,8 @@ class HashGrid(NamedTuple):
     """Points sorted by hash bucket. M = number of point slots, T = table size (static).
 
     points:       [M, 4] rows (x, y, z, 0) in sorted order, input dtype (one 16-byte row
-                  per gather for float32: ~25% faster queries than three [M] arrays);
+                  per gather for float32, rather than one gather from each of three [M]
+                  arrays);
                   slots >= num_valid are the invalid points (never read by a query).
     order:        [M] int32, sorted slot -> index into the arrays given to `build`.
     bucket_start: [T + 1] int32; bucket b holds sorted slots [start[b], start[b + 1]),
@@ -110,9 +111,9 @@ def sort_order(key: Array, key_bound: int) -> Array:
     """Permutation sorting `key` (int32 in [0, key_bound)) ascending, ties by index.
 
     The key and the slot index are packed into one unsigned integer (key << b | i) and
-    sorted as a single operand: on XLA:CPU this is ~5x faster than `jnp.argsort` or a
-    two-operand `lax.sort((key, iota), num_keys=1)` (docs/hashgrid.md). uint32 when it
-    fits, uint64 when x64 is enabled, else the two-operand sort.
+    sorted as a single operand, which the CPU backend sorts much faster than `jnp.argsort`
+    or a two-operand `lax.sort((key, iota), num_keys=1)` (docs/design/merging.md). uint32
+    when it fits, uint64 when x64 is enabled, else the two-operand sort.
     """
     m = key.shape[0]
     b = max(1, (m - 1).bit_length())
@@ -250,13 +251,12 @@ def _prep(grid: HashGrid, qx, qy, qz, radius, chunk: int, sort_queries: bool,
           valid=None) -> _Queries:
     """Cast, optionally sort by the bucket of the lower corner of the block (queries with
     the same block become neighbouring lanes: shared candidates in cache, and similar
-    candidate counts within a chunk; 1.1-1.9x faster on random queries, more for
-    larger M), pad to chunks. Queries where `valid` (None: all) is False become NaN (no
-    candidates) and, sorted, go to the end, so whole chunks of them are skipped. The sort
-    key is the block's hash modulo at most 2**(32 - bits of n) - 1 buckets, so that key and
-    index pack into one uint32 (`sort_order`'s fast path): queries with the same block stay
-    neighbours, and the order of the lanes never changes a query's sum (each lane adds its
-    own pairs in candidate order)."""
+    candidate counts within a chunk), pad to chunks. Queries where `valid` (None: all) is
+    False become NaN (no candidates) and, sorted, go to the end, so whole chunks of them
+    are skipped. The sort key is the block's hash modulo at most 2**(32 - bits of n) - 1
+    buckets, so that key and index pack into one uint32 (`sort_order`'s fast path): queries
+    with the same block stay neighbours, and the order of the lanes never changes a query's
+    sum (each lane adds its own pairs in candidate order)."""
     dt = grid.dtype
     r = grid.radius if radius is None else jnp.asarray(radius).astype(dt)
     q = [jnp.asarray(a).astype(dt) for a in (qx, qy, qz)]

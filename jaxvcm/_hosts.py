@@ -1,4 +1,4 @@
-"""Many processes (issue 11, hosts) on JAX's own distributed runtime: `initialize` wraps
+"""Many processes on JAX's own distributed runtime: `initialize` wraps
 `jax.distributed.initialize`, after which `jax.devices()` lists every process's devices and
 a render's device mesh (`_devices`) spans them all. Every process runs the same host loop
 (SPMD, the multi-controller model of JAX): the same batches of passes, the same collective
@@ -37,10 +37,12 @@ def requested(coordinator=None, num_processes=None, process_id=None) -> bool:
 
 def initialize(coordinator: str | None = None, num_processes: int | None = None,
                process_id: int | None = None) -> None:
-    """Join a multi-process render: the coordinator's HOST:PORT, the process count and this
-    process's id, each from its argument or else from `JAX_COORDINATOR_ADDRESS`,
-    `JAX_NUM_PROCESSES`, `JAX_PROCESS_ID` (and, for what is still unset, JAX's cluster
-    detection: SLURM, Open MPI, ...). Must come before anything starts a JAX backend."""
+    """Join a multi-process render (`jax.distributed.initialize`).
+
+    The coordinator's HOST:PORT, the process count and this process's id come each from
+    its argument or else from `JAX_COORDINATOR_ADDRESS`, `JAX_NUM_PROCESSES`,
+    `JAX_PROCESS_ID` (and, for what is still unset, JAX's cluster detection: SLURM, Open
+    MPI, ...). Must come before anything starts a JAX backend."""
     coordinator = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS") or None
     if num_processes is None:
         num_processes = _env_int("JAX_NUM_PROCESSES")

@@ -571,11 +571,12 @@ def profile_stages(scene: Scene, cfg: RenderConfig, passes: int = 3, seed: int =
     """Time each stage of a pass on its own: median wall seconds per stage.
 
     Stages of `cfg`'s pass (`pass_stages` names, in order, plus "whole pass": the usual
-    single-jit pass), over `passes` passes with keys `pass_key(seed, i)`. Each stage is jitted on its own, its inputs computed by the earlier
-    stages and waited for before its clock starts; every program is compiled and run once
-    (pass 0) before timing. The merge capacity is raised first if a pass would overflow it,
-    as the host driver does. Separate programs cannot fuse across stages, so the stages'
-    sum is usually somewhat more than the whole pass."""
+    single-jit pass), over `passes` passes with keys `pass_key(seed, i)`. Each stage is
+    jitted on its own, its inputs computed by the earlier stages and waited for before its
+    clock starts; every program is compiled and run once (pass 0) before timing. The merge
+    capacity is raised first if a pass would overflow it, as the host driver does.
+    Separate programs cannot fuse across stages, so the stages' sum is usually somewhat
+    more than the whole pass."""
     if passes < 1:
         raise ValueError(f"passes: must be >= 1, got {passes}")
     keys = [jax.random.fold_in(jax.random.key(seed), i) for i in range(passes)]  # pass_key

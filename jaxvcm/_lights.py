@@ -14,8 +14,9 @@ escaped camera vertex belongs to it, `_connect._sky_id`).
 Point lights (SmallVCM's point light): intensity I (W/sr) from a point, isotropic; a
 delta position like the sun's delta direction: next-event estimation's "pdf" is the
 selection probability (the irradiance I / d^2 arrives along -wi), emission starts at the
-point with a direction uniform on the sphere (pdf 1 / (4 pi)), and no path can hit it. The selection probability is part of every light pdf. It is treated
-as a sampling decision and is detached from gradients.
+point with a direction uniform on the sphere (pdf 1 / (4 pi)), and no path can hit it.
+The selection probability is part of every light pdf. It is treated as a sampling
+decision and is detached from gradients.
 """
 
 from __future__ import annotations
@@ -218,7 +219,7 @@ def aim_fraction(scene: Scene, k: int) -> float:
 
 
 def aimed_pdf(scene: Scene, d: Vec3, p: Vec3):
-    """Perpendicular-area pdf of the aimed part of an infinite light's emission (issue 13):
+    """Perpendicular-area pdf of the aimed part of an infinite light's emission:
     the line of direction d (the way light travels) through p crosses the water's plane
     y = level at c; the aimed photons cross it in the footprint [x0, x1] x [z0, z1], in cell
     (i, j) of the [G, G] `aim_map` over the rectangle `aim_rect` (the footprint by default)

@@ -50,7 +50,8 @@ def pass_prob(sigma_s, t):
 
 def _channel_mean(x):
     """Mean over the (few) channels of the last axis, summed one by one: elementwise for
-    the compiler (`jnp.mean` over a short trailing axis ran as a slow YNNPACK kernel)."""
+    the compiler, where `jnp.mean` over a short trailing axis would be a reduction kernel
+    of its own on the CPU."""
     C = x.shape[-1]
     s = x[..., 0]
     for c in range(1, C):

@@ -1,5 +1,5 @@
-"""Passes in a memory budget (issue 11, bounded memory): the chunk count
-(`RenderConfig.chunks`) that keeps one pass's working memory under a budget.
+"""Passes in a memory budget: the chunk count (`Tuning.chunks`, `cfg.tuning.chunks`) that
+keeps one pass's working memory under a budget.
 
 A pass's working memory is, to a good approximation, a cost per path of one chunk (the
 subpath records, the techniques' per-lane values, the hash grid) plus a fixed part (the
@@ -7,13 +7,12 @@ film and the other per-pass arrays). Neither is guessed: `memory_model` compiles
 two probe chunk sizes and reads XLA's own memory analysis of each program
 (`Compiled.memory_analysis`: temporaries, outputs, arguments), a straight line through the
 two. `chunks_for_memory` then takes the fewest chunks that divide the pass's paths evenly
-and fit. Measured (docs/benchmarks.md,
-"Scale-out"): VCM at depth 8 about 16 kB per path, PT 4 kB.
+and fit. docs/benchmarks.md lists the per-path figures of the shipped scenes.
 
 Without a budget, `auto_chunks` uses the device's: 80 % of what its runtime may allocate
 (`Device.memory_stats()["bytes_limit"]`, reported by GPU and TPU runtimes, not by the CPU's),
 and probes only when a rough upper bound (`ROUGH_BYTES`, per path and depth segment, above
-the measured figures) says a single chunk might not fit.
+what the probes find for PT and VCM) says a single chunk might not fit.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from ._integrator import integrate
 PROBE_PATHS = 1024
 DEVICE_SHARE = 0.8  # of a device's allocatable memory, for one pass
 ROUGH_BYTES = {"camera": 700, "both": 2500}  # per path per depth segment: upper bounds of
-# the measured PT (4 kB at depth 8: 500 / segment) and VCM (16 kB: 2000 / segment)
+# what `memory_model` finds for camera-only passes (PT) and bidirectional ones (VCM)
 MIN_CHUNK = 256  # paths; smaller chunks are all overhead
 
 _UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}

@@ -142,14 +142,12 @@ def photon_room(cfg: RenderConfig, slots: int) -> int:
     """Static number of photons the hash grid holds for `slots` light-vertex slots
     ([max(D - 1, 1), paths] flattened): `cfg.tuning.photon_capacity` if set, else
     PHOTON_FRACTION of the slots rounded up to a multiple of 1024 and at least
-    PHOTON_MIN_ROOM; never more than the slots (then nothing is compacted). Valid photons
-    measured at depth 8, 48x48, two keys (pool also 256x256: 6.6 %): pool 6.2-6.3 %,
-    pool_sun 7.4-8.0 %, pool_sky 6.4-6.6 %, pool_wall 9.5-9.7 %, cornell_sun 9 %,
-    cornell_background 6 %, cornell, cornell_point and cornell_spheres 36-38 % of the
-    slots (closed, lit walls), so no shipped scene overflows at depth 8. A quarter would
-    do for the pools (5 % less merging time there) but made the Cornell boxes re-run (and
-    recompile) their first pass. Shallow depths have larger shares (the Cornell boxes'
-    first row: 60-78 %); those overflow once, and the host re-run gives them room."""
+    PHOTON_MIN_ROOM; never more than the slots (then nothing is compacted). Half the slots
+    holds the valid photons of every shipped scene at depth 8: a small share of the slots
+    in the open pools, a larger one in the closed, lit Cornell boxes, which a smaller
+    default room would send through a re-run (and a recompile) of their first pass.
+    Shallow depths have larger shares; those overflow once, and the host re-run
+    (`more_room`) gives them room."""
     if cfg.tuning.photon_capacity:
         room = int(cfg.tuning.photon_capacity)
     else:
@@ -310,8 +308,9 @@ def photon_gather(scene: Scene, cfg: RenderConfig, cam: PathEnds, cverts: subpat
 def vertex_merging(scene: Scene, cfg: RenderConfig, cam: PathEnds, lig: PathEnds, e, radius,
                    parts, by_photon: bool = False):
     """Merging at every non-delta camera vertex z_j (j = 1..D-1) with every photon y_i
-    (i >= 1) within `radius`, like with like, weighted by the explicit-sum MIS over all
-    connection and merging techniques of the algorithm (`_mis.mis_weight(merge=True)`):
+    (i >= 1) within `radius`, like with like, weighted by MIS over all connection and
+    merging techniques of the algorithm (the weights of `_mis.mis_weight(merge=True)`,
+    evaluated at the join by the form `_mis.mis_form(cfg)`):
         L += w_VM beta_z f_z(wo_z, wo_y) beta_y / (kernel N),   i + j <= D.
     `parts`: the subpaths' (light, camera) per-subpath MIS state (`_mis.AbstractMIS.subpaths`):
     each candidate gathers O(1) entries of it.

@@ -39,9 +39,8 @@ def running_count(m):
 def first_true(m, size: int):
     """Indices of the first `size` True items of a flat boolean mask, in order, padded with
     m.size: `jnp.nonzero(m, size=size, fill_value=m.size)[0]`, by one running count and one
-    scatter (`nonzero`: two running counts and a scatter-add). On the 2-core machine 7.5 ->
-    5.4 ms for a million items, and VCM's program (256x256) 1159 -> 1008 kernels and
-    ~1 s less compile time (docs/design.md, "Speed, tenth step")."""
+    scatter, where `nonzero` takes two running counts and a scatter-add (fewer kernels in
+    every queue of the pass)."""
     M = m.shape[0]
     pos = jnp.where(m, running_count(m) - 1, size)
     return jnp.full((size,), M, jnp.int32).at[pos].set(jnp.arange(M, dtype=jnp.int32),

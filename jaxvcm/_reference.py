@@ -12,8 +12,9 @@ critical angle, totally beyond it), summed over round trips:
     L_f   = (a / pi) E_sky sum_j ((a / pi) K)^j
 
 (th: the angle in the water; th_c = asin(1/n)). Gauss-Legendre rules with 400 points on
-each side of th_c. `tests/test_transport.py` checks the same formulas with adaptive
-quadrature; `tests/test_spectral.py` checks this vectorised form against it.
+each side of th_c. The transport tests (tests/transport/test_transport.py) check the same
+formulas with adaptive quadrature, and the spectral tests (tests/transport/test_spectral.py)
+check this vectorised form against them.
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ import numpy as np
 
 
 def fresnel_unpolarised(cos_i, eta):
-    """Unpolarised Fresnel reflectance, relative index eta = n_t / n_i (vectorised); 1 under
-    total internal reflection."""
+    """Unpolarised Fresnel reflectance, relative index eta = n_t / n_i (NumPy, vectorised).
+
+    1 under total internal reflection."""
     sin2_t = (1 - cos_i**2) / eta**2
     cos_t = np.sqrt(np.maximum(0.0, 1 - sin2_t))
     rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
@@ -32,7 +34,12 @@ def fresnel_unpolarised(cos_i, eta):
 
 
 def sky_floor_radiance(depth, sigma_a, n, albedo=1.0, round_trips=None):
-    """L_f [K] for absorption coefficients sigma_a [K] (1/m) at `depth` (m), water index n.
+    """Radiance of a Lambertian floor at the bottom of a flat pool under a uniform sky.
+
+    Sky light refracted in (Fresnel, n^2 radiance gain) and attenuated on its slanted way
+    down, the floor's light reflected back down by the surface, summed over round trips,
+    by Gauss-Legendre quadrature in the water's polar angle: L_f [K] for absorption
+    coefficients sigma_a [K] (1/m) at `depth` (m), water index n, floor albedo `albedo`.
     round_trips: the number of floor -> surface -> floor returns to sum (a path tracer with
     max_depth D makes (D - 3) // 2 of them), or None for the whole geometric series."""
     th_c = np.arcsin(1.0 / n)

@@ -25,7 +25,10 @@ from ._scene import Scene
 
 
 class Diagnostics(eqx.Module):
-    """Per-pass result flags (errors are values under jit)."""
+    """What a render pass reports besides its image: counts and flags.
+
+    Errors are values under jit: a host driver reads these flags after the pass (a merging
+    overflow re-runs it with more room, `with_retry`)."""
 
     nonfinite: Int[Array, ""]  # pixel-technique contributions that were NaN/Inf (zeroed; must be 0)
     camera_paths: Int[Array, ""]  # camera subpaths traced
@@ -43,10 +46,12 @@ class Diagnostics(eqx.Module):
 
 def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig(),
                 pass_index=0) -> tuple[Float[Array, "H W C"], Diagnostics]:
-    """One independent pass of `config.algorithm` on the one bidirectional core: an unbiased
-    per-pixel radiance estimate from `config.spp` camera subpaths per pixel and/or as many
-    light subpaths. Pure and jit/vmap/grad-able (config is static). `pass_index` (0-based)
-    drives the merging radius schedule of `ppm`."""
+    """One render pass: an unbiased per-pixel radiance estimate by `config.algorithm`.
+
+    The algorithm's techniques run on the one bidirectional core, from `config.spp` camera
+    subpaths per pixel and/or as many light subpaths. Pure and jit/vmap/grad-able (config
+    is static). `pass_index` (0-based) drives the merging radius schedule of the merging
+    algorithms (ppm, bpm, vcm). Returns (image [H, W, C], `Diagnostics`)."""
     cam = scene.camera
     N = cam.height * cam.width * config.spp
     img, bad, stats = integrate(scene, key, config, pass_index)
@@ -110,14 +115,18 @@ def _host_pass(scene, key, config, pass_index=0):
 
 
 def render_pass_host(scene, key, config, pass_index=0):
-    """`render_pass` (jitted, or exported for warm starts: `_warm`) with the
-    merge-capacity re-run of `with_retry`."""
+    """One render pass run from the host, re-run with more room if merging overflows.
+
+    `render_pass` jitted (or exported for warm starts: `_warm`), with the merge-capacity
+    re-run of `with_retry`. Returns (image, `Diagnostics`, the config that had room)."""
     return with_retry(_host_pass, scene, key, config, pass_index, lambda d: d, scene)
 
 
 def pass_key(seed: int, index: int) -> PRNGKeyArray:
-    """Key of pass `index` of a render with `seed`: independent of how passes are batched,
-    so resumed or sharded renders draw the same samples."""
+    """The random key of pass `index` of a render with `seed`.
+
+    Independent of how passes are batched, so resumed or sharded renders draw the same
+    samples."""
     return jax.random.fold_in(jax.random.key(seed), index)
 
 
@@ -239,8 +248,10 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
            exposure: float = 0.0, scene_path: str | None = None, devices=None,
            resume: bool = False, memory: int | str | None = None,
            techniques: bool = False) -> np.ndarray:
-    """Progressive render (`progressive`) of `render_pass` with keys `pass_key(seed, i)`:
-    the mean of the passes as float32 [H, W, C]; with `out`, EXR + PNG + JSON (and
+    """Render a scene progressively: the mean of independent passes, to a count or a time.
+
+    `progressive` over `render_pass` with keys `pass_key(seed, i)`: returns the mean of
+    the passes as float32 [H, W, C]; with `out`, writes EXR + PNG + JSON (and
     snapshots every `snapshot_every` seconds). `devices` (None: every local device; a
     count; or a list) run one pass each at once (`_devices`; on a multi-process launch,
     `_hosts`, that many on every process): the same passes as on one device, summed on the

@@ -17,8 +17,8 @@ INV_4PI = 0.25 / jnp.pi
 
 
 def sincos(phi):
-    """(cos phi, sin phi), each computed once (`_fuse.computed_once`: otherwise XLA:CPU
-    recomputes both in every fusion that reads the sampled direction)."""
+    """(cos phi, sin phi), each computed once (`_fuse.computed_once`: otherwise the CPU
+    backend recomputes both in every fusion that reads the sampled direction)."""
     return computed_once(jnp.cos(phi), jnp.sin(phi))
 
 

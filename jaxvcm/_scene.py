@@ -5,8 +5,8 @@ and image sizes are `eqx.field(static=True)` so that changing them recompiles wh
 changing a coefficient does not. Shapes are written in the field comments:
 R rectangles, S spheres, M materials, W waves, L lights, C spectral channels.
 
-Units: metres, y up. Spectra are arrays of C channels (C = 3, linear RGB, for now);
-no kernel assumes C = 3.
+Units: metres, y up. Spectra are arrays of C channels (C = 3, linear RGB, in an RGB
+scene; one channel per wavelength in spectral mode); no kernel assumes C = 3.
 """
 
 from __future__ import annotations
@@ -141,9 +141,9 @@ class Lights(eqx.Module):
     direction: Float[Array, "L 3"]  # sun: unit direction light travels; zeros otherwise
     power_weight: Float[Array, "L"]  # unnormalised light-selection weights (see _lights)
     position: Float[Array, "L 3"]  # point lights: the position; zeros otherwise
-    # Aimed emission (issue 13, `_lights.aimed_pdf`): per light, the fraction of its photons
-    # aimed at the water's footprint (sun and sky only; the rest start on the scene's
-    # bounding disk as before). () or all 0: no aiming (not in the compiled program).
+    # Aimed emission (`_lights.aimed_pdf`): per light, the fraction of its photons aimed at
+    # the water's footprint (sun and sky only; the rest start on the scene's bounding
+    # disk). () or all 0: no aiming (not in the compiled program).
     aim: tuple[float, ...] = eqx.field(static=True, default=())
     # [G, G] non-negative weights of the footprint's cells (rows z, columns x) that the aimed
     # photons follow; a 1 x 1 map: uniform over the footprint. A sampling decision: detached.
@@ -158,6 +158,13 @@ class Lights(eqx.Module):
 
 
 class Scene(eqx.Module):
+    """A scene as one pytree: camera, materials, shapes, water and lights.
+
+    The array fields are the differentiable parameters (pytree leaves); kinds, counts,
+    image size and the name are static, so changing them recompiles while changing a
+    coefficient does not. Build one with `load_scene` or `scene_from_dict`.
+    """
+
     camera: Camera
     materials: Materials
     rects: Rects

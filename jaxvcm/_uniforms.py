@@ -2,19 +2,19 @@
 
 A pass draws its path uniforms as dense tables, `jax.random.uniform(key, (rows, lanes,
 width))`: u[d, n] for every depth d of every lane n. Most lanes die long before the last
-depth (PT on the pool at depth 8 records 43 % of its [D, N] vertex slots), and the
-threefry hashes of the dead slots were a third of a PT pass's CPU time. JAX's threefry is
-counter based: with `jax_threefry_partitionable` (JAX's default) element i of the table is
-a function of the key and of i alone,
+depth, so hashing the whole table would spend most of its threefry hashes on slots no
+vertex reads. JAX's threefry is counter based: with `jax_threefry_partitionable` (JAX's
+default) element i of the table is a function of the key and of i alone,
     bits(i) = x1 ^ x2,  (x1, x2) = threefry2x32(key, (hi(i), lo(i)))   (32-bit floats;
     float64: x1 << 32 | x2),
     u(i) = bitcast(bits >> (nbits - nmant) | bits(1.0)) - 1.0,
 so the uniforms of one (depth, lane) can be hashed on their own, in the trace round that
 needs them (`Uniforms.at`), and the samples do not change. `dense()` is
-`jax.random.uniform` itself; `tests/test_uniforms.py` checks that the two agree bit for bit
-(in float32 and float64, one table and two tables side by side), so a change in JAX's
-mapping is caught there, not in the renders. With another key implementation, or the
-partitionable flag off, `at` gathers from the dense table (always correct, no saving).
+`jax.random.uniform` itself; the sampling tests (tests/sampling/test_uniforms.py) check
+that the two agree bit for bit (in float32 and float64, one table and two tables side by
+side), so a change in JAX's mapping is caught there, not in the renders. With another key
+implementation, or the partitionable flag off, `at` gathers from the dense table (always
+correct, no saving).
 """
 
 from __future__ import annotations
@@ -31,10 +31,10 @@ _ROT = ((13, 15, 26, 6), (17, 29, 16, 24))
 
 def threefry2x32(k1, k2, x1, x2):
     """The Threefry-2x32 hash of 20 rounds (Salmon et al. 2011, Random123), the function of
-    `jax.extend.random.threefry2x32_p`, unrolled: XLA:CPU lowers JAX's primitive as a
-    rolled loop of five blocks, whose per-iteration buffers cost more than the hash when
-    a trace round draws a few thousand lanes' uniforms; unrolled it is one fused loop.
-    Equal bit for bit to the primitive (tests/test_uniforms.py)."""
+    `jax.extend.random.threefry2x32_p`, unrolled into one fused loop (the CPU backend
+    lowers JAX's primitive as a rolled loop of five blocks, with buffers per iteration
+    that outweigh the hash for the few thousand lanes of a trace round). Equal bit for bit
+    to the primitive (tests/sampling/test_uniforms.py)."""
     u32 = jnp.uint32
     ks = (k1, k2, k1 ^ k2 ^ u32(0x1BD11BDA))
     x1, x2 = x1 + ks[0], x2 + ks[1]
@@ -85,7 +85,7 @@ class Uniforms(eqx.Module):
         shape = (self.rows[t], self.lanes, self.width)
         if not self.lazy:
             return jax.random.uniform(self.keys[t], shape, self.dtype)
-        # the same numbers by the unrolled hash over the flat index (5x faster on XLA:CPU)
+        # the same numbers by the unrolled hash over the flat index (`threefry2x32`)
         i = jnp.arange(int(np.prod(shape)), dtype=jnp.uint32)
         return _to_unit(self.keys[t], i, self.dtype).reshape(shape)
 
@@ -100,9 +100,9 @@ class Uniforms(eqx.Module):
         """u[d[k], g[k], :] for a batch of items ([K], [K] -> [K, width]) as one buffer:
         hashed inside a conditional on `live` (a traced scalar: False only where no item
         needs them; zeros then). The branch is a computation boundary, so the hashes are
-        computed once: as plain ops XLA:CPU fuses the 80-op integer hash into each of its
-        consumers' loops and computes it there again (14 copies in a trace round: the
-        trace 0.17 -> 0.28 s of CPU), and it drops optimization barriers before fusion."""
+        computed once: as plain ops the CPU backend would fuse the integer hash into each
+        of its consumers' loops and compute it there again (and it drops optimization
+        barriers before fusion)."""
         return jax.lax.cond(live, lambda: jax.vmap(self.at)(d, g),
                             lambda: jnp.zeros(d.shape + (self.width,), self.dtype))
 

@@ -2,8 +2,9 @@
 
 A `Vec3` holds three arrays of equal shape (x, y, z). Kernels are written for one
 ray, where each component is a scalar, and `jax.vmap` turns every component into
-a length-N array: the batch is then structure-of-arrays by construction, which
-on CPU is 10-20x faster than `(N, 3)` arrays reduced over the last axis.
+a length-N array: the batch is then structure-of-arrays by construction, which the
+CPU backend runs as plain elementwise loops rather than as reductions over a short last
+axis of `(N, 3)` arrays (docs/design/performance.md).
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
 """Warm starts: the host driver's pass kept as a serialized `jax.export` module.
 
 JAX's persistent compilation cache skips XLA's compilation in a new process, but not the
-tracing and lowering that produce the module it is keyed by: for VCM at 256x256 that is
-about 5 s of the 9.7 s a warm first pass took (docs/benchmarks.md, "Startup"). This module
-stores the lowered pass itself (`jax.export.export(...).serialize()`) next to the
-compilation cache, so a later process deserializes it and goes straight to the cached
-executable: no Python tracing of the renderer at all.
+tracing and lowering that produce the module it is keyed by, a large part of a warm first
+pass (docs/benchmarks.md has the startup figures). This module stores the lowered pass
+itself (`jax.export.export(...).serialize()`) next to the compilation cache, so a later
+process deserializes it and goes straight to the cached executable: no Python tracing of
+the renderer at all.
 
 The pass is exported as a function of flat arrays (the scene's leaves, the key's raw data,
 the pass index as int32), so its signature needs no custom pytree serialization; the

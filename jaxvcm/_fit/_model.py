@@ -153,7 +153,8 @@ def region_colours(scenes: Sequence, regions: Sequence[Region], passes: int, see
     pass of one (unstacked) scene. Default keys: pass_key(seed, i), i < passes; other keys
     [P] with pass indices [P] render other passes with the same program. The passes (and so
     the fit's Jacobian, scenes x regions x keys) are spread over `devices` (default: every
-    local device; `_shard_passes`); the values do not depend on how many, to float32 rounding of the mean."""
+    local device; `_shard_passes`); the values do not depend on how many, to float32
+    rounding of the mean."""
     devs = jax.local_devices() if devices is None else list(devices)
     groups = _groups(scenes, anonymous)
     keys = jnp.stack([pass_key(seed, i) for i in range(passes)])
@@ -192,8 +193,10 @@ def _with_water(scene: Scene, sigma_a, sigma_s) -> Scene:
 
 def region_colours_fn(scenes: Sequence[Scene], regions: Sequence[Region], config: RenderConfig,
                       passes: int, seed: int, devices=None):
-    """RGB scenes: theta [2C] = (ln sigma_a, ln sigma_s) -> (region colours [R, C] linear
-    sRGB, merge overflow flag); see `region_colours` (`fn(theta, keys, indices)`)."""
+    """The forward model of an RGB fit: water coefficients -> the regions' mean colours.
+
+    fn(theta, keys, indices): theta [2C] = (ln sigma_a, ln sigma_s) -> (region colours
+    [R, C] linear sRGB, merge overflow flag); see `region_colours`."""
     C = scenes[0].channels
     dtype = scenes[0].water.sigma_a.dtype
 
@@ -217,9 +220,11 @@ def _to_values(theta, names, linear):
 def spectral_region_colours_fn(spectral: Sequence[SpectralScene], regions: Sequence[Region],
                                names: Sequence[str], config: RenderConfig, passes: int,
                                seed: int, linear: Sequence[str] = (), devices=None):
-    """Spectral scenes: theta [n] -> (region XYZ [R, 3], merge overflow flag), theta_j = ln p_j
-    of the WaterModel leaf `names[j]`, or p_j itself for names in `linear`; see
-    `region_colours`."""
+    """The forward model of a spectral fit: water-model parameters -> the regions' XYZ.
+
+    fn(theta, keys, indices): theta [n] -> (region XYZ [R, 3], merge overflow flag),
+    theta_j = ln p_j of the WaterModel leaf `names[j]`, or p_j itself for names in
+    `linear`; see `region_colours`."""
     names = list(names)
     linear = tuple(linear)
 

@@ -90,7 +90,9 @@ def _write(record: dict, draw, res, out_dir: str) -> tuple[str, str]:
 
 
 def write_outputs(res: FitResult, out_dir: str) -> tuple[str, str]:
-    """fit.json (`FitResult.to_dict`) + fit.png (`plot_fit`) in out_dir -> their paths."""
+    """Write an RGB fit's fit.json and fit.png into `out_dir`; returns their paths.
+
+    fit.json is `FitResult.to_dict` (written atomically), fit.png `plot_fit`'s figure."""
     return _write(res.to_dict(), plot_fit, res, out_dir)
 
 
@@ -141,5 +143,8 @@ def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
 
 
 def write_outputs_spectral(res: SpectralFitResult, out_dir: str) -> tuple[str, str]:
-    """fit.json (with mode = "spectral") + fit.png in out_dir (like `write_outputs`)."""
+    """Write a spectral fit's fit.json and fit.png into `out_dir`; returns their paths.
+
+    As for an RGB fit (`jaxvcm.write_fit_outputs`), with mode = "spectral" in fit.json and
+    `plot_fit_spectral`'s figure."""
     return _write({**res.to_dict(), "mode": "spectral"}, plot_fit_spectral, res, out_dir)

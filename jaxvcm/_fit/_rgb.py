@@ -40,6 +40,12 @@ from ._solver import levenberg_marquardt
 
 @dataclasses.dataclass
 class FitResult:
+    """The result of an RGB fit (`fit`): the fitted coefficients with their uncertainties.
+
+    Also the regions' target, fitted and initial colours, their Delta E 2000, the solver's
+    record (iterations, loss history, times) and the config; `to_dict` gives fit.json's
+    content."""
+
     sigma_a: np.ndarray  # [C] fitted absorption, 1/m
     sigma_s: np.ndarray  # [C] fitted scattering, 1/m
     sigma_a_sd: np.ndarray  # [C] 1-sigma (scaled by the residual variance)

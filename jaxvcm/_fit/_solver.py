@@ -8,8 +8,8 @@ The loss of every step is recorded with the solver's `verbose` hook (a
 residuals at y0 are recorded the same way from the residual function's first evaluation
 (a callback on its primal output), and the residuals and the Jacobian at the solution (the
 last accepted iterate) are read from the solver's state, so the compiled program holds the
-renderer once: the linearisation inside the solver's loop (a second copy for r(y0) cost
-2.3 s of tracing and about 3 s of compilation of the 18 s RGB fit).
+renderer once: the linearisation inside the solver's loop (a separate evaluation of r(y0)
+would add a second copy of the renderer to trace and compile).
 
 Covariance of the parameters from the Jacobian J at the solution: `cov_unscaled` =
 (J^T J)^-1 trusts the stated uncertainties; `cov` = (J^T J)^-1 s^2 with the residual

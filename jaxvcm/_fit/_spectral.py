@@ -37,6 +37,12 @@ from ._solver import levenberg_marquardt
 
 @dataclasses.dataclass
 class SpectralFitResult:
+    """The result of a spectral fit (`fit_spectral`): the fitted `WaterModel` parameters.
+
+    Their uncertainties, the regions' target, fitted and initial colours, their Delta E
+    2000, the solver's record (iterations, loss history, times) and the config; `to_dict`
+    gives fit.json's content."""
+
     params: dict  # name -> fitted value
     params_sd: dict  # name -> 1 sigma (scaled by the residual variance)
     init: dict
@@ -72,8 +78,8 @@ class SpectralFitResult:
              "init": {k: float(v) for k, v in self.init.items()},
              "linear": list(self.linear),
              "theta": None if self.theta is None else f(self.theta),
-             # cov_log keeps its historical name: the covariance of theta (log for the
-             # log-space parameters, linear for `linear` ones)
+             # cov_log: the covariance of theta, whatever each parameter's space (log for
+             # the log-space parameters, linear for `linear` ones)
              "cov_log": f(self.cov), "cov_log_unscaled": f(self.cov_unscaled),
              "space": self.space,
              "regions": [{"name": r.name, "scene": r.scene, "rect": list(r.rect),
@@ -121,11 +127,13 @@ def fit_spectral(spectral, regions: Sequence[Region],
                  max_steps: int = 40, rtol: float = 1e-3, atol: float = 1e-3,
                  truth: dict | None = None, linear: Sequence[str] = (),
                  progress: bool = False) -> SpectralFitResult:
-    """Fit `params` (names of `WaterModel` leaves, or scalar leaves of a `WaterModel`
-    subclass, shared by all scenes) so that the region
-    colours of the spectral scenes match the targets (in "xyz", "srgb" = linear sRGB, or
-    "lab"). init: name -> initial value (default: the first scene's water model).
-    linear: names fitted in linear space (may cross 0); the others in log space.
+    """Fit water-model parameters (shared by all `spectral` scenes) to the region targets.
+
+    `params`: names of `WaterModel` leaves, or scalar leaves of a `WaterModel` subclass,
+    fitted so that the region colours of the spectral scenes match the targets (in "xyz",
+    "srgb" = linear sRGB, or "lab"). init: name -> initial value (default: the first
+    scene's water model). linear: names fitted in linear space (may cross 0); the others in
+    log space.
     Uncertainties: sd(p) = p sd(ln p) for log-space parameters, sd(p) for linear ones."""
     t0 = _time.perf_counter()
     spectral, snames = _named(spectral, SpectralScene)

@@ -1,9 +1,9 @@
-"""The explicit MIS sums of `_mis.py`, evaluated at the join: O(D) per subpath, O(1) per
+"""The explicit MIS sums of `_full`, evaluated at the join: O(D) per subpath, O(1) per
 technique.
 
 `_mis.mis_weight` assembles the whole path x_0..x_k for every technique of every lane and
 sums over all of its techniques: O(D) gathers and O(D^2) adds per technique. The sums
-split at the join. With c_j = sum_{i<j} (log a_i - log b_i) (`_mis.py`), every term of
+split at the join. With c_j = sum_{i<j} (log a_i - log b_i) (`_full`), every term of
 technique s's denominator relative to the connection technique s is, in log space,
     connection j < s:  sum_{i=j}^{s-1} d_i,               d_i = log b_i - log a_i,
     merge at i < s:    log b_i + log eta_i + sum_{m=i+1}^{s-1} d_m,
@@ -13,16 +13,18 @@ technique s's denominator relative to the connection technique s is, in log spac
 camera side's T(p) = u_p (+) (e_p + T(p+1)) ((+) = logaddexp; u_p the terms that start
 at x_p: the tech report's dVCM/dVC/dVM recursion, here in log space). Only the pdfs next
 to the join depend on the technique: b_{s-1}, b_{s-2} and a_s, a_{s+1} (re-evaluated by
-the join, `_path.py`), and the Russian roulette of each direction, which counts from the
-generating end: b_i (light vertex) carries q_{i+1} iff k - i - 1 >= rr_depth, so on the
-light side the last rr_depth - t - 1 vertices before those two lack it (t: camera
-vertices), and symmetrically a_i on the camera side with s. Each subpath therefore keeps,
-per vertex position m and per "other side length" variant, the log-sum over the vertices
-before the two join vertices (`Partials.table`, built once per subpath by the recursion
-with q and at most rr_depth - 1 steps without it), and a technique adds its two join
-vertices on each side, its own term, and one log-sum-exp. Same weights as `_mis.py` to
-float32 round-off (tests/test_mis_partial.py compares them on random subpaths); ppm
-(merging only at the first non-delta camera vertex) keeps the assembled form.
+the join: `_connect`'s join pdfs, `_path.reverse_pdf`), and the Russian roulette of each
+direction, which counts from the generating end: b_i (light vertex) carries q_{i+1} iff
+k - i - 1 >= rr_depth, so on the light side the last rr_depth - t - 1 vertices before
+those two lack it (t: camera vertices), and symmetrically a_i on the camera side with s.
+Each subpath therefore keeps, per vertex position m and per "other side length" variant,
+the log-sum over the vertices before the two join vertices (`Partials.table`, built once
+per subpath by the recursion with q and at most rr_depth - 1 steps without it), and a
+technique adds its two join vertices on each side, its own term, and one log-sum-exp.
+Same weights as `mis_weight` to float32 round-off (the MIS tests,
+tests/mis/test_mis_partial.py, compare them on random subpaths). ppm (photons gathered
+only at the first non-delta camera vertex) takes no weights at all
+(`_config.Techniques.weighted`).
 """
 
 from __future__ import annotations
@@ -122,8 +124,8 @@ def _tables(cfg, M, u_q, d_q, u_1, d_1, bad):
     #     S_z[m] = u_1[m-1] (+) (d_1[m-1] + S_{z-1}[m-1]),  S_z[0] = S[0],  S_0 = Sq:
     # one elementwise step over [M+1, lanes] per variant, the row shift a pad (the same
     # operations in the same order as z steps per variant, which cost sum z instead of
-    # max z; a gather of u_1[p] for all variants at once made XLA's CPU backend emit one
-    # scalar gather loop over [V, M+1, lanes], 2.5x slower).
+    # max z; a gather of u_1[p] for all variants at once would be a scalar gather loop
+    # over [V, M+1, lanes] on the CPU backend).
     zs = [int(x) for x in z[:, 0]]
     m = np.arange(M + 1)
     pad = jnp.zeros((1,) + u_1.shape[1:], u_1.dtype)
@@ -268,10 +270,10 @@ def join_weight(cfg: RenderConfig, s, t, L: Partials, C: Partials, A_s, A_s1, B_
                 delta_light, infinite_light, log_n_lt, merge=False, lanes=((), ())):
     """MIS weight of technique (s, t) for one lane (`lanes`: each side's trailing-axis
     indices, see `entries`), from the two subpaths' partials and the four pdfs the join
-    re-evaluates (`_path.path_pdfs`: A_s = a(x_s), A_s1 = a(x_{s+1}) if t >= 3,
+    re-evaluates (`_connect.JoinPdfs`: A_s = a(x_s), A_s1 = a(x_{s+1}) if t >= 3,
     B_s1 = b(x_{s-1}), B_s2 = b(x_{s-2})); log_n_lt: log of light tracing's multiplicity;
-    `merge`: merging at x_s = z_{t-1} (A_s is then the photon's pdf). Equal to
-    `_path.weight` with mis_form "explicit"."""
+    `merge`: merging at x_s = z_{t-1} (A_s is then the photon's pdf). The weight of
+    `ExplicitMIS.join_weight`."""
     return join(cfg, s, t, entries(cfg, L, s, t, lanes[0]), entries(cfg, C, t, s, lanes[1]),
                 A_s, A_s1, B_s1, B_s2, delta_light, infinite_light, log_n_lt, merge)
 
@@ -362,7 +364,7 @@ def pt_weight(cfg: RenderConfig, lp_own, la_other, other_ok, conn):
     logaddexp(0, SC); s = 1: SC = -inf (uc1: no connection s + 2), SL = u1 = [vc1] beta
     (lb1 - lp1) (no second light vertex: d2 = 0, u2 = table = -inf), total = logaddexp(0,
     SL). The same operations in the same order (logaddexp with -inf is exact), so the
-    weight equals `join_weight`'s to the bit (tests/test_mis_partial.py)."""
+    weight equals `join_weight`'s to the bit (tests/mis/test_mis_partial.py)."""
     beta = 2.0 if cfg.mis == "power" else 1.0
     x = jnp.where(other_ok, beta * (la_other - lp_own), NEG)
     return jnp.where(conn, jnp.exp(0.0 - jnp.logaddexp(0.0, x)), jnp.zeros((), lp_own.dtype))

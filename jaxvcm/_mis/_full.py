@@ -16,9 +16,9 @@ Delta vertices. After a delta (specular) vertex the pdf of the next vertex carri
 Dirac delta in both directions; the tracer stores the Dirac as 1 but keeps its conversion
 to the next vertex's measure (cos / d^2: `_subpath` module doc, which says why pbrt's
 remap of the whole pdf to 1 is wrong with merging), and every technique that would
-connect at a delta vertex is invalid, so the Diracs never appear in a ratio. Zero pdfs (e.g. the back of a one-sided light seen from the
-reverse side) make a technique impossible; they are excluded explicitly rather than
-through 0 * inf.
+connect at a delta vertex is invalid, so the Diracs never appear in a ratio. Zero pdfs
+(e.g. the back of a one-sided light seen from the reverse side) make a technique
+impossible; they are excluded explicitly rather than through 0 * inf.
 
 Valid connection techniques j in [0, k+1] (j light vertices, t = k+1-j camera vertices):
     j = 0      the camera subpath hits the light: the light is not a delta light;
@@ -43,9 +43,9 @@ from .._config import TECHNIQUES
 
 def _sums(x, rel, cols: int):
     """out[j] = sum_i x[i] [rel(i, j)], j < cols: the prefix / suffix sums of a short
-    per-path vector as one product with a constant 0/1 matrix. (`jnp.cumsum` lowers to a
-    `reduce_window` whose window spans the whole axis: O(L^2) adds per lane on the CPU, the
-    largest cost of a bidirectional pass at depth 16.)"""
+    per-path vector as one product with a constant 0/1 matrix (where `jnp.cumsum` lowers to
+    a `reduce_window` whose window spans the whole axis: O(L^2) adds per lane on the
+    CPU)."""
     L = x.shape[0]
     m = rel(np.arange(L)[:, None], np.arange(cols)[None, :]).astype(np.float32)
     return jnp.matmul(x, jnp.asarray(m, x.dtype), precision=jax.lax.Precision.HIGHEST)
@@ -56,8 +56,9 @@ def mis_weight(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool[Array, "L
                infinite_light: Bool[Array, ""], log_n_lt: Float[Array, ""],
                algorithm: str = "bdpt", beta: float = 1.0, log_eta: Float[Array, "L"] | None = None,
                merge=False) -> Float[Array, ""]:
-    """Weight of technique s for the path x_0..x_k (entries i > k are ignored).
+    """The MIS weight of technique s of a full path x_0..x_k, by explicit sums in log space.
 
+    Entries i > k of the per-vertex arrays are ignored.
     a, b: per-vertex light- and camera-side pdfs (Diracs as 1, RR included);
     delta: per-vertex delta flag; delta_light: x_0 is on a delta light (the sun);
     infinite_light: x_0 is at infinity (sun, sky): it cannot be joined to the pinhole (k = 1);

@@ -1,8 +1,8 @@
 """MIS weights by the recursive dVCM / dVC / dVM form of Georgiev's tech report
 "Implementing Vertex Connection and Merging" (2012), in two shapes:
 - `mis_weight_recursive`: a second, independent implementation of `_mis.mis_weight` (same
-  signature, same semantics) over an assembled full path, the oracle of the property
-  tests (and ppm's weights with `mis_form="recursive"`);
+  signature, same semantics) over an assembled full path, an oracle of the MIS tests
+  (tests/mis);
 - the renderer's recursive form (`RenderConfig(mis_form="recursive")`, end of this
   module): dVCM / dVC / dVM carried along each subpath as it is traced (`carry_step`,
   SmallVCM's way) and joined per technique (`join`), O(1) per technique.
@@ -18,9 +18,10 @@ Notation
 Full path x_0 .. x_k (x_0 on the light, x_k the pinhole); a_i, b_i the light- and
 camera-side pdfs of x_i in area / volume measure (the cosines, squared distances,
 distance-sampling and Russian-roulette factors already folded in, the Dirac of a pdf
-after a delta vertex counted as 1, its conversion kept: `_subpath` module doc); eta_i the merging kernel times N at x_i (pi r^2 N on surfaces, 4/3 pi r^3 N in the
-medium); nu_j the multiplicity of connection technique j (N_light for light tracing,
-j = k; 1 otherwise). Connection technique j (j light vertices) has
+after a delta vertex counted as 1, its conversion kept: `_subpath` module doc); eta_i the
+merging kernel times N at x_i (pi r^2 N on surfaces, 4/3 pi r^3 N in the medium); nu_j
+the multiplicity of connection technique j (N_light for light tracing, j = k; 1
+otherwise). Connection technique j (j light vertices) has
 p_j = prod_{i<j} a_i prod_{i>=j} b_i; merging at x_i has n p = eta_i a_i p_i.
 The power heuristic raises every factor to beta ("Mis(x)" of the tech report), so below
 A_i = a_i^beta, B_i = b_i^beta, H_i = eta_i^beta, E_j = e_j nu_j^beta, where e_j in {0, 1}
@@ -42,7 +43,8 @@ then S_i = B_i (f_i H_i + dVCM_i + dVC_i B_{i-1}) and
     dVCM_i = E_i / A_i
     dVC_i  = (f_{i-1} H_{i-1} + dVCM_{i-1} + dVC_{i-1} B_{i-2}) / A_i
     dVM_i  = (H_{i-1}/H_i) (f_{i-1} + dVCM_{i-1}/H_{i-1} + dVM_{i-1} B_{i-2}) / A_i
-(the three updates of tr. 34-36 followed by the distance/cosine completion on arrival) with dVC_0 = dVM_0 = 0, dVCM_0 = E_0 / A_0 (tr. 31-33). In solid-angle form the factor
+(the three updates of tr. 34-36 followed by the distance/cosine completion on arrival)
+with dVC_0 = dVM_0 = 0, dVCM_0 = E_0 / A_0 (tr. 31-33). In solid-angle form the factor
 1/A_i is the tech report's cos(theta_o)/p_fwd_W at x_{i-1} followed by d^2/|cos theta_i|
 on arrival at x_i, and B_{i-2} its reverse solid-angle pdf with the cosine/distance it
 pairs with; here the area pdfs carry both. The tech report's light start
@@ -94,8 +96,8 @@ quantities read for s only divide by a_i, i < s, and b_i, i >= s, which are all 
 when s itself is possible; the own technique is checked explicitly (weight 0 when
 impossible). Reciprocals of zero pdfs are taken as 0, and a product with an exactly zero
 pdf or enable factor is exactly 0 even when the other factor has overflowed, so that
-parts of the scans that no possible technique reads stay finite (without these guards
-about 1 path in 10^4 gave NaN in float32 at pdfs 10^+-2, power heuristic).
+parts of the scans that no possible technique reads stay finite (unguarded, such
+products turn into NaN on rare float32 paths).
 
 Range
 -----
@@ -103,19 +105,12 @@ The quantities are sums of products of pdf ratios in linear space, and a stored
 quantity can exceed the ratio it finally contributes by the product of the ratios along
 a run of the path (dVC_i is divided by B_{i-1} A_i until the join multiplies those back),
 so an intermediate overflows (weight 0) or underflows (term lost) while the true weight
-is moderate. The explicit sums of `_mis.py` work in log space and have no such limit.
-Measured against them (20 000 - 50 000 random paths of 1..8 segments per row, all
-algorithms and techniques, error > 1e-5 counted as a failure; "extreme": every pdf at
-10^+r or 10^-r, radii at 1e-3 or 10 of unit scale, N in {1, 64, 65536}):
-    float32, beta = 2: extreme 10^+-2 no failure (uniform log pdfs: none up to 10^+-4,
-        0.07 % at 10^+-6);
-        extreme 10^+-3: 0.05 % of paths, 10^+-4: 0.4 %, 10^+-6: 3.5 %;
-        extreme 10^+-2 with radii of 1e-6 or 100: 0.08 %;
-    float32, beta = 1: no failure up to extreme 10^+-6;
-    float64: no failure up to extreme 10^+-20; extreme 10^+-30, beta = 2: 0.1 %.
-No non-finite weight was seen in any row; the failures are wrong (zero or unnormalised)
-weights. tests/test_mis_recursive.py keeps float32 at pdfs 10^+-2 and radii 1e-3..10 and
-shows a concrete overflowing path.
+is moderate. The explicit sums (`_full`, `_explicit`) work in log space and have no such
+limit. The two forms agree while the pdfs stay within a few orders of magnitude of one
+in float32 (further in float64); beyond that a share of paths gets a wrong (zero or
+unnormalised) weight, never a non-finite one. docs/design/mis.md ("Range") gives the
+failure rates against the explicit sums; the MIS tests (tests/mis/test_mis_recursive.py)
+keep float32 at pdfs 10^+-2 and radii 1e-3..10 and show a concrete overflowing path.
 """
 
 from __future__ import annotations
@@ -174,8 +169,10 @@ def mis_weight_recursive(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool
                          algorithm: str = "bdpt", beta: float = 1.0,
                          log_eta: Float[Array, "L"] | None = None,
                          merge=False) -> Float[Array, ""]:
-    """Weight of technique s for the path x_0..x_k (entries i > k are ignored), by the
-    recursive dVCM/dVC/dVM form; arguments and result as `_mis.mis_weight`."""
+    """The MIS weight of technique s of a full path x_0..x_k, by the recursive form.
+
+    The dVCM / dVC / dVM recursion of Georgiev's tech report run over the assembled path;
+    entries i > k are ignored; arguments and result as `mis_weight`."""
     L = a.shape[0]
     dt = a.dtype
     k = jnp.asarray(k, jnp.int32)
@@ -274,7 +271,7 @@ def mis_weight_recursive(a: Float[Array, "L"], b: Float[Array, "L"], delta: Bool
 # computed, before they are stored), records them per vertex, and evaluates each
 # technique's weight at its join from the two records next to it (tr. 37-47): O(1) per
 # vertex while tracing, O(1) per technique. It reads none of the stored pdf records, so
-# an image rendered with it checks the records that the explicit sums (`_mis_partial`)
+# an image rendered with it checks the records that the explicit sums (`_explicit`)
 # are built from (and the queue's shifting of the reverse pdfs), not only the algebra.
 #
 # Russian roulette by index. A vertex's survival probability counts from whichever end
@@ -492,7 +489,7 @@ def join_weight(cfg, s, t, L: Carried, C: Carried, A_s, A_s1, B_s1, B_s2, delta_
                 infinite_light, log_n_lt, merge=False, lanes=((), ())):
     """MIS weight of technique (s, t) (or merging at x_s = z_{t-1}: the photon is y_s) from
     the two subpaths' carried records and the four pdfs the join re-evaluates; the same
-    signature as `_mis_partial.join_weight` (A_s, the photon's pdf for a merge, is then
+    signature as `ExplicitMIS.join_weight` (A_s, the photon's pdf for a merge, is then
     already in the photon's record)."""
     if merge:
         Le = entries(cfg, L, s + 1, t, lanes[0], merge=True)

@@ -31,6 +31,10 @@ def split_pass_key(key: PRNGKeyArray) -> tuple[PRNGKeyArray, PRNGKeyArray]:
 
 
 class SpectralDiagnostics(eqx.Module):
+    """What a spectral pass reports besides its XYZ image.
+
+    The core pass's diagnostics, the pass's wavelengths and its radiance per wavelength."""
+
     core: Diagnostics  # the core's per-pass diagnostics
     wavelengths: Float[Array, "C"]  # nm, the pass's hero wavelength first
     radiance: Float[Array, "H W C"]  # the raw per-wavelength radiance of the pass
@@ -40,6 +44,7 @@ def render_pass_spectral(spectral: SpectralScene, key: PRNGKeyArray,
                          config: RenderConfig = RenderConfig(), pass_index=0
                          ) -> tuple[Float[Array, "H W 3"], SpectralDiagnostics]:
     """One spectral pass: an unbiased per-pixel estimate of CIE 1931 XYZ (over 380-720 nm).
+
     Pure and jit/vmap/grad-able (config is static); shapes depend only on the static
     n_wavelengths and the image size."""
     k_lam, k_render = split_pass_key(key)
@@ -67,6 +72,7 @@ def render_pass_spectral(spectral: SpectralScene, key: PRNGKeyArray,
 
 @functools.partial(jax.jit, static_argnums=(2,))
 def render_pass_spectral_jit(spectral, key, config, pass_index=0):
+    """`render_pass_spectral` jitted with `config` static: the pass `render_spectral` runs."""
     return render_pass_spectral(spectral, key, config, pass_index)
 
 
@@ -82,11 +88,13 @@ def render_spectral(spectral: SpectralScene, passes: int | None = 16, seed: int 
                     exposure: float = 0.0, time: float | None = None,
                     snapshot_every: float | None = None, progress: bool = False
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Progressive spectral render on the one host driver (`_render.progressive`: the same
-    pass keys `pass_key(seed, i)`, merge-capacity re-runs, time budget, snapshots and
-    progress as `render`): passes are averaged in XYZ and converted to linear sRGB
-    (colour-science) for the outputs. Returns (linear sRGB [H, W, 3], XYZ [H, W, 3]); with
-    `out`, writes the sRGB image as EXR + PNG + JSON."""
+    """Render a spectral scene progressively: passes averaged in CIE XYZ, output in sRGB.
+
+    The one host driver (`_render.progressive`: the same pass keys `pass_key(seed, i)`,
+    merge-capacity re-runs, time budget, snapshots and progress as `render`): passes are
+    averaged in XYZ and converted to linear sRGB (colour-science) for the outputs. Returns
+    (linear sRGB [H, W, 3], XYZ [H, W, 3]); with `out`, writes the sRGB image as EXR + PNG
+    + JSON."""
     check_budget(passes, time)
     state = {"config": config or RenderConfig()}
 

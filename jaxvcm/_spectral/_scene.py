@@ -104,7 +104,9 @@ def _tables() -> dict:
 
 
 def cmf_table() -> tuple[np.ndarray, np.ndarray]:
-    """(grid nm [K], CIE 1931 2 degree xbar, ybar, zbar [K, 3]) as used by the film."""
+    """The CIE 1931 2 degree colour-matching functions of the spectral film.
+
+    Returns (grid nm [K], xbar, ybar, zbar [K, 3]) on the 1 nm grid 380..720 nm."""
     t = _tables()
     return t["grid"], t["cmf"]
 
@@ -125,8 +127,10 @@ def _srgb_luminance(rgb) -> float:
 
 
 def upsample_emission(rgb, illuminant: str = "D65", temperature: float = 5778.0) -> np.ndarray:
-    """Linear-sRGB light colour [3] -> emission spectrum on the grid [K]: Mallett(rgb) times
-    D65 or a blackbody at `temperature` K, scaled to the RGB colour's luminance."""
+    """Linear-sRGB light colour [3] -> emission spectrum on the grid [K].
+
+    Mallett(rgb) times D65 or a blackbody at `temperature` K, scaled to the RGB colour's
+    luminance."""
     import colour
 
     t = _tables()
@@ -152,8 +156,11 @@ def _interp_rows(lam: Array, table: Array) -> Array:
 
 
 class SpectralScene(eqx.Module):
-    """The RGB `Scene` (geometry, camera, light positions; its spectral leaves are replaced
-    per pass) plus spectra tabulated on the 1 nm grid 380..720 nm (K = 341 points)."""
+    """A scene for spectral mode: an RGB `Scene` plus its spectra on a 1 nm grid.
+
+    The RGB scene holds the geometry, camera and light positions (its spectral leaves are
+    replaced per pass, `at_wavelengths`); the spectra are tabulated on the 1 nm grid
+    380..720 nm (K = 341 points). Built by `spectral_scene`."""
 
     scene: Scene
     water: WaterModel

@@ -34,8 +34,8 @@ log space):
 Why not more: the target observables are colours of a few regions at known depths, i.e.
 a smooth spectrum of extinction; two absorption shapes (exponential in the blue, flat) on
 top of the fixed pure-water spectrum and one power-law scattering term are the fewest
-shapes that can move hue, brightness and haze independently; whether they span the Jerlov
-types' K_d spectra is for the (not yet written) Jerlov fits to show. Chlorophyll's 440 and
+shapes that can move hue, brightness and haze independently; how far they span the Jerlov
+types' K_d spectra is what the Jerlov fits (fits/jerlov_types) show. Chlorophyll's 440 and
 675 nm bands would be the next term if a fit needed them.
 
 Phase function of the mixture: the core has one phase function per water body, so a
@@ -74,7 +74,9 @@ def _read_csv(name: str) -> tuple[list[str], np.ndarray]:
 
 @functools.cache
 def pope_fry_table() -> tuple[np.ndarray, np.ndarray]:
-    """(wavelengths nm, a_w 1/m) of Pope & Fry 1997, 380-725 nm every 5 nm."""
+    """Pure water's absorption as measured by Pope & Fry (1997): the shipped table.
+
+    Returns (wavelengths nm, a_w 1/m), 380-725 nm every 5 nm."""
     _, r = _read_csv("water_absorption_pope_fry_1997.csv")
     return r[:, 0], r[:, 1]
 
@@ -88,7 +90,9 @@ def sellmeier_coefficients() -> tuple[np.ndarray, np.ndarray]:
 
 @functools.cache
 def jerlov_table() -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
-    """(water type names, wavelengths nm [7], K_d 1/m [7, types]) of Jerlov 1976."""
+    """The diffuse attenuation K_d of Jerlov's (1976) water types: the shipped table.
+
+    Returns (water type names, wavelengths nm [7], K_d 1/m [7, types])."""
     h, r = _read_csv("jerlov_1976_kd.csv")
     return tuple(h[1:]), r[:, 0], r[:, 1:]
 
