@@ -33,7 +33,7 @@ from ._devices import resolve_devices
 from ._memory import parse_bytes
 from ._fit import WATER_FIELDS
 from ._io import FORMATS, check_writable, export_scene
-from ._io._scene_sections import MAX_PIXELS
+from ._io._schema import MAX_PIXELS
 from ._render import ALL_NONFINITE
 from ._scene import (LIGHT_NAMES, LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_NAMES,
                      PHASE_NAMES)

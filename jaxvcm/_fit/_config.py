@@ -13,7 +13,7 @@ import numpy as np
 
 from .._config import ALGORITHMS, MAX_DEPTH, RenderConfig
 from .._io._scene_file import _Ctx, scene_from_dict
-from .._io._scene_sections import IOR, MAX_PIXELS
+from .._io._schema import IOR, MAX_PIXELS
 from .._io._toml import Range, key_path, read_toml
 from .._spectral._scene import MAX_WAVELENGTHS
 from .._spectral import spectral_scene

@@ -54,7 +54,9 @@ FOV = Range(0.01, 179.0, "degrees")
 MAX_PIXELS = 16384  # per side: a 16384^2 float32 RGB film is 3.2 GB
 PIXELS = Range(1, MAX_PIXELS)
 ALBEDO = Range(0.0, 1.0)  # materials and emitters alike (energy conservation)
-RADIANCE = Range(0.0, 1e15, "W/(m^2 sr)")  # irradiance: W/m^2; power stays < 1e29 W
+RADIANCE = Range(0.0, 1e15, "W/(m^2 sr)")  # emitted power stays < 1e29 W
+IRRADIANCE = Range(0.0, 1e15, "W/m^2")  # the sun's
+INTENSITY = Range(0.0, 1e15, "W/sr")  # a point light's
 SIGMA = Range(0.0, 1e6, "1/m")  # optical depth 1 over a micrometre
 IOR = Range(1.0, 3.0)  # 1: an index-matched boundary (no refraction); diamond is 2.42
 WAVE_K = Range(-1e4, 1e4, "rad/m")  # wavelengths down to 0.6 mm
@@ -340,7 +342,7 @@ LIGHTS = Table("lights", "array of tables", "Lights; a scene has at least one.",
             (_CENTER, _RADIUS, _RADIANCE, _EMITTER_ALBEDO)),
     Variant("sun", "A distant light from one direction.", (
         Field("direction", "direction", "The way the light travels.", range=DIRECTION),
-        Field("irradiance", "spectrum", "Irradiance on a plane facing the sun.", range=RADIANCE,
+        Field("irradiance", "spectrum", "Irradiance on a plane facing the sun.", range=IRRADIANCE,
               unit="W/m^2", nonzero=True),
         dataclasses.replace(_AIM, note="> 0 needs `[water]` and a downward `direction`"),
     )),
@@ -350,7 +352,7 @@ LIGHTS = Table("lights", "array of tables", "Lights; a scene has at least one.",
             (_RADIANCE,), notes=("at most one sky or background per scene",)),
     Variant("point", "An isotropic point light.", (
         _coord("position", "Its position."),
-        Field("intensity", "spectrum", "Radiant intensity.", range=RADIANCE, unit="W/sr",
+        Field("intensity", "spectrum", "Radiant intensity.", range=INTENSITY, unit="W/sr",
               nonzero=True),
     )),
 ), notes=(("`aim` (sun, sky): the rest of the photons still start on the scene's bounding "
