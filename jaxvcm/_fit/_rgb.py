@@ -167,8 +167,8 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
     theta = np.asarray(theta_full0, np.float64).copy()
     theta[free_idx] = sol.y
     if sol.overflow:
-        raise RuntimeError("fit: the merging gather overflowed its capacity; raise "
-                           "RenderConfig.merge_capacity")
+        raise RuntimeError("fit: the merging gather overflowed its capacity; pass a config "
+                           "with more room, config.tuned(merge_capacity=...)")
     rgb0 = sol.r0.reshape(-1, 3) * unc + targets  # initial, in `space`
     res = sol.residuals
     fitted = res.reshape(-1, 3) * unc + targets
