@@ -1,4 +1,4 @@
-"""Timings behind docs/hashgrid.md: sorting strategies, hash grid build and query.
+"""Timings behind docs/design/merging.md: sorting strategies, hash grid build and query.
 
     python -m benchmarks.hashgrid [--sort-sizes 65536,262144,1048576,4194304]
                                   [--grid-sizes 65536,262144,1048576] [--repeats 5]

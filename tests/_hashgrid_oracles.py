@@ -5,7 +5,7 @@ neighbour list). `query` (every neighbour's index in a [Q, K] array), its host h
 `query_with_retry` and `candidate_counts` (the candidate-list length of each query, the
 loop length of both queries) were in `jaxvcm/_hashgrid.py`; they are kept here, unchanged,
 because tests/merge/test_hashgrid.py checks the grid's neighbour sets through `query` against
-the brute-force oracle and `benchmarks/hashgrid.py` times them (docs/hashgrid.md). They
+the brute-force oracle and `benchmarks/hashgrid.py` times them (docs/design/merging.md). They
 are built from the grid's private building blocks (`_prep`, `_block`, `_test`, ...), which
 is why they live with the white-box tests rather than in `benchmarks/` (the benchmarks use
 only the public `jaxvcm` API).

@@ -12,7 +12,7 @@ import os
 # about 25 % faster, and its code is slower only where a test runs many large passes. The
 # arithmetic is the same IEEE arithmetic (no fast-math either way): the fixed-key renders of
 # tests/transport/test_golden.py, recorded at the default level, still agree to float32 round-off.
-# Renders outside the tests keep the default level (docs/design.md: level 0 makes passes
+# Renders outside the tests keep the default level (docs/design/performance.md: level 0 makes passes
 # 2-3x slower). Set before jax is imported; subprocesses (the CLI tests) inherit it.
 _flag = "--xla_backend_optimization_level=0"
 if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):

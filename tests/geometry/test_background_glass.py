@@ -51,7 +51,7 @@ def _check(scene, cfg, want, passes=8):
 # radius 0.01 of the scene's bounding radius: merging blurs over r / R = 1.7 % of the
 # sphere's radius (at radius 0.05, r / R = 8.7 %, vcm and bpm measured 5-6 % high on this
 # sphere and exact on a flat plane: the consistent estimator's bias on curved surfaces,
-# docs/design.md "Background light and glass")
+# docs/design/pass.md, "Materials and lights")
 @pytest.mark.parametrize("alg", ["pt", "vcm"])  # vcm holds every bdpt technique
 def test_background_lights_a_diffuse_sphere_to_albedo_times_radiance(alg):
     # measured (8 passes, 4 spp): pt, bdpt 1.0008 x a L (SE 0.28 %)

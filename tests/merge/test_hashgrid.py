@@ -333,7 +333,7 @@ def test_sort_order_matches_stable_argsort(key_bound):
 
 
 def test_precise_flag():
-    # float32 grid: coordinates must stay within ~4096 cells of 0 (docs/hashgrid.md)
+    # float32 grid: coordinates must stay within ~4096 cells of 0 (docs/design/merging.md)
     P = np.array([[0, 1], [0, 1], [0, 1]], np.float32)
     ok = build(*P, None, np.float32(0.01), table_size=8, dtype=jnp.float32)  # ~100 cells
     far = build(*P, None, np.float32(1e-5), table_size=8, dtype=jnp.float32)  # ~1e5 cells

@@ -47,8 +47,8 @@ in (or just beside) the aimed rectangle three times in four, float64:
    reverse pdfs with the directions swapped, the surface disk kernel at medium vertices)
    make step 4 fail.
 
-Conventions the expected values follow (`_subpath.to_area`, `dist_pdf`; docs/design.md
-"Subpath records"): a pdf of vertex x_b generated from x_a is the solid-angle pdf at x_a
+Conventions the expected values follow (`_subpath.to_area`, `dist_pdf`; docs/design/mis.md,
+"Conventions the weights rest on"): a pdf of vertex x_b generated from x_a is the solid-angle pdf at x_a
 (BSDF / phase function / emission / pinhole) times G = |cos(n_b, w)| / d^2 at a surface
 vertex x_b, 1 / d^2 at a medium vertex (no cosine), times the distance-sampling factor of
 the segment when it runs through the water: p_scatter(d) = mean_c sigma_s,c
