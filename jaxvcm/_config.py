@@ -150,8 +150,8 @@ class RenderConfig:
     mis_form:    "explicit" (log-space sums over all techniques, evaluated at each join
                  from per-subpath partial sums) or "recursive" (the tech report's
                  dVCM/dVC/dVM recursion in linear space, carried along the subpaths as
-                 they are traced): the same weights, two implementations
-                 (`jaxvcm._mis.AbstractMIS`).
+                 they are traced): the same weights, two implementations of one
+                 interface (docs/design/mis.md).
     tuning:      how the work is laid out (`Tuning`: trace rounds, chunks, capacities),
                  not what is estimated; set by the host driver, or with `tuned(...)`.
     """

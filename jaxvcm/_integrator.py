@@ -61,7 +61,8 @@ class Technique(NamedTuple):
          path's row, so none of the D^2 / 2 techniques writes an [N, C] buffer of its own
          (emitter hits and next-event estimation, D techniques each, keep one value per
          technique); and PT's emitter hits and next-event estimation summed per path
-         inside the camera trace (s = 0, t = 0; `_inline`).
+         inside the camera trace (s = 0, t = 0; docs/design/pass.md, "PT's inline
+         route").
     """
 
     kind: str
