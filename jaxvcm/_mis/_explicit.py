@@ -421,18 +421,8 @@ class ExplicitMIS(AbstractMIS):
         f = jnp.zeros((1, 1), bool)
         return camera(cfg, one, one, one, f, f, _sg(log_n_lt), _sg(etas))
 
-    def entries(self, cfg, P, n, other, index=()):
-        return entries(cfg, P, n, other, index)
-
-    def start_entries(self, cfg, A0, delta_light, leta0=0.0):
-        return start_entries(cfg, A0, delta_light, leta0)
-
-    def join(self, cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
-             log_n_lt, merge=False):
-        return join(cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
-                    log_n_lt, merge)
-
-    def join_weight(self, cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
-                    infinite_light, log_n_lt, merge=False, lanes=((), ())):
-        return join_weight(cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
-                           infinite_light, log_n_lt, merge, lanes)
+    # the per-technique functions of this module, as the interface's methods
+    entries = staticmethod(entries)
+    start_entries = staticmethod(start_entries)
+    join = staticmethod(join)
+    join_weight = staticmethod(join_weight)

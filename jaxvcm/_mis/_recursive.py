@@ -581,18 +581,8 @@ class RecursiveMIS(AbstractMIS):
     def pinhole(self, cfg, log_n_lt, dtype, etas):
         return lone_start(cfg, (1,), dtype)
 
-    def entries(self, cfg, P, n, other, index=()):
-        return entries(cfg, P, n, other, index)
-
-    def start_entries(self, cfg, A0, delta_light, leta0=0.0):
-        return start_entries(cfg, A0, delta_light, leta0)
-
-    def join(self, cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
-             log_n_lt, merge=False):
-        return join(cfg, s, t, Le, Ce, A_s, A_s1, B_s1, B_s2, delta_light, infinite_light,
-                    log_n_lt, merge)
-
-    def join_weight(self, cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
-                    infinite_light, log_n_lt, merge=False, lanes=((), ())):
-        return join_weight(cfg, s, t, L, C, A_s, A_s1, B_s1, B_s2, delta_light,
-                           infinite_light, log_n_lt, merge, lanes)
+    # the per-technique functions of this module, as the interface's methods
+    entries = staticmethod(entries)
+    start_entries = staticmethod(start_entries)
+    join = staticmethod(join)
+    join_weight = staticmethod(join_weight)
