@@ -84,7 +84,8 @@ PROFILE_TAG = "stage-profile"
 # row order of the profile tables (`jaxvcm.profile_stages` names; others go before the sums)
 PROFILE_STAGES = ("setup", "camera rays", "light emission", "subpaths",
                   "subpaths, emitter hits, next-event estimation", "mis partials",
-                  "emitter hits", "next-event estimation", "light tracing", "connections",
+                  "emitter hits", "glints", "next-event estimation", "light tracing",
+                  "connections",
                   "merging", "film")
 _TAG_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
 _SECTION_RE = re.compile(
@@ -93,6 +94,18 @@ _SECTION_RE = re.compile(
 
 
 # ----------------------------------------------------------------------------- arguments
+def render_config(name: str, **kw) -> jaxvcm.RenderConfig:
+    """The configuration of an algorithm name of the bench: an algorithm, or one with
+    "+glints" (the glint technique on: `RenderConfig.glints`)."""
+    alg, plus, extra = name.partition("+")
+    if plus and extra != "glints":
+        raise _Usage(f"unknown algorithm {name!r}: the only suffix is '+glints'")
+    try:
+        return jaxvcm.RenderConfig(algorithm=alg, glints=bool(plus), **kw)
+    except ValueError as e:
+        raise _Usage(str(e)) from None
+
+
 class _Usage(ValueError):
     pass
 
@@ -449,10 +462,11 @@ def _render_reference(scene, config, seed: int, req_passes, req_time, log, label
 
 
 def _get_reference(a, scene_path: Path, scene, stem: str, sha: str, log) -> tuple:
-    config = jaxvcm.RenderConfig(algorithm=a.reference_algorithm, max_depth=a.max_depth)
+    config = render_config(a.reference_algorithm, max_depth=a.max_depth)
     w, h = scene.camera.width, scene.camera.height
     ref_seed = a.seed + REF_SEED_OFFSET
-    exr, side = _ref_paths(a.reference_dir, stem, config.algorithm, w, h, config.max_depth)
+    exr, side = _ref_paths(a.reference_dir, stem, a.reference_algorithm.replace("+", "-"), w, h,
+                           config.max_depth)
     want = {"scene_sha256": sha, "width": w, "height": h, "algorithm": config.algorithm,
             "max_depth": config.max_depth, "config": dataclasses.asdict(config)}
     shape = (h, w, 3)
@@ -747,7 +761,7 @@ def run_profile(a, argv, log) -> dict:
         w, h = scene.camera.width, scene.camera.height
         row = {"scene": path.stem, "width": w, "height": h, "seconds": {}}
         for alg in a.algorithms:
-            cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            cfg = render_config(alg, max_depth=a.max_depth)
             log(f"profile: {path.stem} {alg} {w}x{h} d{a.max_depth}: compiling every stage, "
                 f"then {a.throughput_passes} passes")
             t0 = time.perf_counter()
@@ -855,8 +869,10 @@ def _settings(argv):
                  "peer": ["pt"]}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
-        if alg not in jaxvcm.ALGORITHMS:
-            raise _Usage(f"unknown algorithm {alg!r}; one of {', '.join(jaxvcm.ALGORITHMS)}")
+        if alg.partition("+")[0] not in jaxvcm.ALGORITHMS:
+            raise _Usage(f"unknown algorithm {alg!r}; one of {', '.join(jaxvcm.ALGORITHMS)}"
+                         f" (with '+glints': the glint technique)")
+        render_config(alg)
     a.algorithms = list(dict.fromkeys(a.algorithms))
     root = repo_root()
     mode_scenes = {"compare-mis": _vm.MIS_DEFAULT_SCENES,
@@ -924,7 +940,7 @@ def run(a, argv) -> dict:
                 "algorithm", "width", "height", "max_depth", "passes", "seconds", "seed",
                 "noise_rmse", "noise_rel_rmse", "mean")}, "reused": reused}
         for alg in a.algorithms:
-            config = jaxvcm.RenderConfig(algorithm=alg, max_depth=a.max_depth)
+            config = render_config(alg, max_depth=a.max_depth)
             tw = _warm_up(scene, config, a.seed)
             log(f"{stem} {alg} {w}x{h} d{a.max_depth}: warm-up {tw:.2f} s; timing "
                 f"{max(a.budgets):g} s")
@@ -943,7 +959,7 @@ def run(a, argv) -> dict:
             tscene = jaxvcm.load_scene(path, **tsize)
             tw_, th_ = tscene.camera.width, tscene.camera.height
             for alg in a.algorithms:
-                config = jaxvcm.RenderConfig(algorithm=alg, max_depth=THROUGHPUT_DEPTH)
+                config = render_config(alg, max_depth=THROUGHPUT_DEPTH)
                 _warm_up(tscene, config, a.seed)
                 r = _throughput(tscene, config, a.seed, a.throughput_passes)
                 res["throughput"].append({

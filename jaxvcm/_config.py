@@ -152,6 +152,12 @@ class RenderConfig:
                  dVCM/dVC/dVM recursion in linear space, carried along the subpaths as
                  they are traced): the same weights, two implementations of one
                  interface (docs/design/mis.md).
+    glints:      add the glint technique: per camera path, a point on a light and the
+                 water surface's point that reflects it (refracts it, for a camera
+                 under the water) into the path's pixel, found by Newton, weighted by
+                 MIS against the emitter hits that make the same paths
+                 (docs/design/manifold.md). For the algorithms with emitter hits and
+                 MIS weights: pt, bdpt, bpm, vcm.
     tuning:      how the work is laid out (`Tuning`: trace rounds, chunks, capacities),
                  not what is estimated; set by the host driver, or with `tuned(...)`.
     """
@@ -165,6 +171,7 @@ class RenderConfig:
     radius: float = 0.005
     alpha: float = 0.75
     mis_form: str = "explicit"
+    glints: bool = False
     tuning: Tuning = Tuning()
 
     @property
@@ -201,6 +208,12 @@ class RenderConfig:
                              f"bounding radius), got {self.radius!r}")
         if not (isinstance(self.alpha, (int, float)) and 0 < self.alpha < 1):
             raise ValueError(f"config.alpha: must lie in (0, 1), got {self.alpha!r}")
+        if not isinstance(self.glints, bool):
+            raise ValueError(f"config.glints: must be true or false, got {self.glints!r}")
+        if self.glints and not (self.techniques.emitter_hits and self.techniques.weighted):
+            raise ValueError(f"config.glints: the glint technique shares its paths with the "
+                             f"emitter hits by MIS; {self.algorithm} has no weighted emitter "
+                             f"hits (use pt, bdpt, bpm or vcm)")
         if not isinstance(self.tuning, Tuning):
             raise ValueError(f"config.tuning: must be a Tuning record (set it with "
                              f"RenderConfig.tuned), got {type(self.tuning).__name__}")

@@ -32,6 +32,7 @@ from . import _subpath as subpath
 from . import _vec as vec
 from ._camera import camera_importance
 from ._config import RenderConfig
+from ._glints import emitter_share as glint_share
 from ._mis import mis_form
 from ._path import both_dispersed, log_n_light_tracing, reverse_pdf
 from ._queue import masked_map
@@ -167,9 +168,11 @@ def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
 
 # ---------------------------------------------------------------- the techniques
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
-                 etas, parts):
-    """s = 0: z_j on an emitter or at infinity (sky), j = 1..D: {(0, j + 1): [N, C]}."""
-    val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas)
+                 etas, parts, pixel=None):
+    """s = 0: z_j on an emitter or at infinity (sky), j = 1..D: {(0, j + 1): [N, C]}.
+    `pixel` [N] (the paths' pixels): the glint technique runs, and the emitter hits of its
+    paths take their share of them (`_glints.emitter_share`)."""
+    val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas, pixel)
     return {(0, j + 1): val[j - 1] for j in range(1, cfg.max_depth + 1)}
 
 
@@ -269,7 +272,7 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
 
 
 def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
-                         verts: subpath.Vertex, parts, etas):
+                         verts: subpath.Vertex, parts, etas, pixel=None):
     """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
     only the live vertices that see emission (a light, or the sky after an escape) evaluate
     the join; in a pool few camera vertices do."""
@@ -295,6 +298,9 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
         w = sg(mis_form(cfg).join_weight(cfg, jnp.asarray(0, jnp.int32), i + 2, L0, parts[1],
                                          sg(A_s), sg(A_s1), one, one, jnp.zeros((), bool),
                                          esc, sg(log_n), lanes=((0,), (n,))))
+        if pixel is not None:  # the glints' paths: the emitter hit's share of them
+            z0, z1 = cam_at(0, n), cam_at(1, n)
+            w = w * glint_share(scene, cfg, z0.p, z1, z, lid, esc, i + 1, pixel[n])
         return z.beta * r.Le * w
 
     ok = verts.alive & jnp.any(verts.Le > 0, axis=-1)

@@ -32,6 +32,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from . import _camera as camera
 from . import _connect as connect
+from . import _glints as glints
 from . import _inline as inline
 from . import _lights as lights
 from . import _merge as merge
@@ -294,7 +295,22 @@ def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 
 # ---- [s = 0] emitter hits of the camera subpaths (ppm: in its gather)
 def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    return _add(st, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts))
+    pixel = _path_pixels(scene, cfg, st) if _glints_on(scene, cfg) else None
+    return _add(st, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts,
+                                         pixel))
+
+
+# ---- glints: a light point seen in the water surface, per camera path (`_glints`)
+def _glints_on(scene: Scene, cfg: RenderConfig) -> bool:
+    return cfg.glints and glints.applies(scene)
+
+
+def glint_connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    if not glints.applies(scene):  # no water, or no light a glint can show
+        return st
+    key = jax.random.fold_in(jax.random.fold_in(st.key, glints.STREAM), st.chunk)
+    val = glints.glints(scene, cfg, _path_pixels(scene, cfg, st), key)
+    return _add(st, {Technique("glint", 1, 1): val})
 
 
 # ---- [s = 1] next-event estimation at camera vertices
@@ -408,6 +424,8 @@ def pass_stages(cfg: RenderConfig, image_only: bool = False) -> list[tuple[str, 
         stages.append(("mis partials", mis_partials))
     if cam and tech.emitter_hits and tech.merging != "first":
         stages.append(("emitter hits", emitter_hits))
+    if cam and tech.emitter_hits and cfg.glints:
+        stages.append(("glints", glint_connections))
     if cam and D >= 2 and tech.nee:
         stages.append(("next-event estimation", next_event))
     if light and tech.merging == "first":

@@ -155,7 +155,7 @@ class _Ends(NamedTuple):
 
 
 # ---------------------------------------------------------------- small helpers
-def _below(w: Water, p: Vec3) -> Array:
+def below(w: Water, p: Vec3) -> Array:
     """p in the water: inside the (closed) footprint and under the surface."""
     fp = w.footprint
     h, _, _ = water_height(w, p.x, p.z, grad=False)
@@ -163,15 +163,20 @@ def _below(w: Water, p: Vec3) -> Array:
 
 
 def _ends(w: Water, a: Vec3, b: Vec3, refract: bool, b_is_direction: bool) -> _Ends:
-    a_below = _below(w, a)
+    a_below = below(w, a)
     if b_is_direction:
         b_below = b.y > 0  # light travelling up comes from below
         ok = vec.length(b) > 0
     else:
-        b_below = _below(w, b)
+        b_below = below(w, b)
         ok = jnp.asarray(True)
     ok = ok & w.enabled
     one = jnp.ones_like(a.x)
+    if not isinstance(refract, bool):  # a traced law: both, selected
+        r = jnp.asarray(refract)
+        ok = ok & jnp.where(r, a_below != b_below, a_below == b_below)
+        return _Ends(jnp.where(r & a_below, w.ior, one), jnp.where(r & b_below, w.ior, one),
+                     a_below, b_below, ok)
     if refract:
         ok = ok & (a_below != b_below)
         eta_a = jnp.where(a_below, w.ior, one)
@@ -184,9 +189,12 @@ def _ends(w: Water, a: Vec3, b: Vec3, refract: bool, b_is_direction: bool) -> _E
 
 def _live_etas(w: Water, E: _Ends, refract: bool):
     """The constraint's indices with the water's ior live (differentiable)."""
-    if not refract:
+    if isinstance(refract, bool) and not refract:
         return E.eta_a, E.eta_b
-    return jnp.where(E.a_below, w.ior, 1.0), jnp.where(E.b_below, w.ior, 1.0)
+    ea, eb = jnp.where(E.a_below, w.ior, 1.0), jnp.where(E.b_below, w.ior, 1.0)
+    if isinstance(refract, bool):
+        return ea, eb
+    return jnp.where(refract, ea, E.eta_a), jnp.where(refract, eb, E.eta_b)
 
 
 def _w_b(b: Vec3, s: Vec3, b_is_direction: bool) -> Vec3:
@@ -343,9 +351,12 @@ def _checks(w: Water, x, z, a: Vec3, b: Vec3, E: _Ends, refract: bool, b_is_dire
     ok = (x > fp[0]) & (x < fp[1]) & (z > fp[2]) & (z < fp[3])
     ok = ok & jnp.where(E.a_below, ca < 0, ca > 0) & jnp.where(E.b_below, cb < 0, cb > 0)
     H = wa * E.eta_a + wb * E.eta_b
-    if refract:
-        # Snell's sine of the far side must be below 1
-        ok = ok & ((E.eta_a / E.eta_b) ** 2 * (1.0 - ca * ca) < 1.0)
+    # Snell's sine of the far side must be below 1 (E's indices are 1 for a reflection)
+    tir_free = (E.eta_a / E.eta_b) ** 2 * (1.0 - ca * ca) < 1.0
+    if not isinstance(refract, bool):
+        ok = ok & (~jnp.asarray(refract) | tir_free)
+    elif refract:
+        ok = ok & tir_free
     return ok, vec.length(H), s
 
 
@@ -671,6 +682,57 @@ def solve(water: Water, a: Vec3, b: Vec3, *, refract: bool, b_is_direction: bool
                      jnp.stack([x0, x1, z0, z1]))
 
 
+class Near(NamedTuple):
+    """The root Newton reaches from one seed (`solve_near`)."""
+
+    s: Vec3  # the point on the surface (the last iterate where not `valid`)
+    valid: Array  # bool: a root (residual within tolerance, the law's sides, no TIR)
+    residual: Array  # |c| at s
+
+
+def solve_near(water: Water, a: Vec3, b: Vec3, x, z, *, refract,
+               b_is_direction: bool = False, iters: int = 8) -> Near:
+    """The root of a -> s -> b that Newton reaches from the one seed (x, z): `solve`'s
+    iteration (trust region of a quarter of the shortest wave and half the distance to a
+    point endpoint), clamped into the footprint, with its convergence test and its
+    differentiable polish. A deterministic function of (a, b, seed): an estimator that
+    counts only the roots it returns stays unbiased if every other technique knows the
+    same function (`_glints`: the seed is fixed per pixel). `refract` may be traced (a
+    bool array: the law chosen per connection; so may `generalized_geometry`'s,
+    `fresnel_factor`'s and `radiance_scale`'s). Scalars; vmap over connections."""
+    dt = a.x.dtype
+    eps = float(jnp.finfo(dt).eps)
+    sg = jax.lax.stop_gradient
+    w0, a0, b0 = sg(water), sg(a), sg(b)
+    E = _ends(w0, a0, b0, refract, b_is_direction)
+    fp = w0.footprint
+    _, _, kmax = _waves(w0)
+    quarter = jnp.where(kmax > 0, HALF_PI / jnp.where(kmax > 0, kmax, 1.0), jnp.inf)
+
+    def body(_, xz):
+        x, z = xz
+        c, J, h = _c_and_jac(w0, x, z, a0, b0, E.eta_a, E.eta_b, b_is_direction, True)
+        dx, dz, _, _ = _newton_delta(c, J, eps)
+        ln = jnp.sqrt(dx * dx + dz * dz)
+        s = Vec3(x, h, z)
+        lim = jnp.minimum(quarter, 0.5 * vec.length(a0 - s))
+        if not b_is_direction:
+            lim = jnp.minimum(lim, 0.5 * vec.length(b0 - s))
+        f = jnp.minimum(1.0, lim / jnp.maximum(ln, 1e-30))
+        return jnp.clip(x + f * dx, fp[0], fp[1]), jnp.clip(z + f * dz, fp[2], fp[3])
+
+    x, z = jax.lax.fori_loop(0, iters, body, (sg(jnp.asarray(x, dt)), sg(jnp.asarray(z, dt))))
+    eta_a, eta_b = _live_etas(water, E, refract)
+    xp, zp = _polish(water, x, z, a, b, eta_a, eta_b, b_is_direction)
+    h, _, _ = water_height(water, xp, zp)
+    xs_, zs_ = sg(xp), sg(zp)
+    c, _, _ = _c_and_jac(w0, xs_, zs_, a0, b0, E.eta_a, E.eta_b, b_is_direction)
+    ok, H_len, s = _checks(w0, xs_, zs_, a0, b0, E, refract, b_is_direction)
+    res = jnp.sqrt(c[0] * c[0] + c[1] * c[1])
+    tol = _tol(w0, s, a0, b0, H_len, E.eta_a, E.eta_b, b_is_direction, eps)
+    return Near(Vec3(xp, h, zp), E.ok & ok & (res <= tol), res)
+
+
 # ---------------------------------------------------------------- the specular chain's Jacobian
 def _root_fn(water: Water, a: Vec3, s: Vec3, b: Vec3, refract: bool, b_is_direction: bool):
     """The root near s (a point) as a differentiable function of the endpoints (a, b)."""
@@ -762,22 +824,19 @@ def fresnel_factor(water: Water, a: Vec3, s: Vec3, b: Vec3, *, refract: bool,
     cos_b = vec.dot(n, _w_b(b, s, b_is_direction))
     ior = water.ior
     side = jnp.where(E.b_below, ior, 1.0)
-    if refract:
-        other = jnp.where(E.a_below, ior, 1.0)
-    else:
-        other = jnp.where(E.b_below, 1.0, ior)
+    other = jnp.where(refract, jnp.where(E.a_below, ior, 1.0), jnp.where(E.b_below, 1.0, ior))
     R, _ = fresnel_dielectric(cos_b, other / side)
-    return (1.0 - R) if refract else R
+    return jnp.where(refract, 1.0 - R, R)
 
 
 def radiance_scale(water: Water, a: Vec3, b: Vec3, *, refract: bool,
                    b_is_direction: bool = False) -> Array:
     """(eta_a / eta_b)^2 for a refraction (the n^2 law of radiance arriving at a from b's
     medium), 1 for a reflection."""
-    if not refract:
+    if isinstance(refract, bool) and not refract:
         return jnp.ones_like(a.x)
     E = _ends(water, jax.lax.stop_gradient(a), jax.lax.stop_gradient(b), refract,
               b_is_direction)
     eta_a = jnp.where(E.a_below, water.ior, 1.0)
     eta_b = jnp.where(E.b_below, water.ior, 1.0)
-    return (eta_a / eta_b) ** 2
+    return jnp.where(refract, (eta_a / eta_b) ** 2, 1.0)

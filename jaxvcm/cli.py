@@ -123,6 +123,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--algorithm", default="vcm", choices=ALGORITHMS,
                    help="vcm (default): all connections and merges; pt, lt, bdpt, ppm, bpm: "
                         "subsets of the same core")
+    r.add_argument("--glints", action=argparse.BooleanOptionalAction, default=None,
+                   help="the glint technique: the lights seen in the waves, by a Newton "
+                        "solve on the water surface per pixel (default: on for pt, bdpt, bpm "
+                        "and vcm)")
     r.add_argument("--radius", type=_finite_float_in(1e-9, 1.0), default=None, metavar="R",
                    help="first-pass merging radius as a fraction of the scene's bounding "
                         "radius (ppm/bpm/vcm; default 0.005)")
@@ -283,6 +287,8 @@ def _cmd_render(a) -> int:
     if passes is None and tlimit is None:
         tlimit = 60.0
     cfg = {"algorithm": a.algorithm}
+    cfg["glints"] = (a.glints if a.glints is not None
+                     else a.algorithm in ("pt", "bdpt", "bpm", "vcm"))
     if a.max_depth is not None:
         cfg["max_depth"] = a.max_depth
     if a.radius is not None:

@@ -1,0 +1,255 @@
+"""Glints: the lights seen in the water surface from the pinhole, by one manifold
+connection per camera path.
+
+The paths pinhole c -> s -> y with s on the water surface (a mirror reflection; a
+refraction when the camera is under the water) and y on a light are made by one technique
+of the core alone: the emitter hit (s = 0, t = 3), a camera ray that reflects at the
+surface and happens to land on the light. No connection joins s (a delta vertex) and no
+merge has a non-delta vertex to merge at. With a small light each such sample is 0 or the
+light's whole radiance: the glints in the waves are the noisiest part of a pool's image.
+
+The glint technique (`glints`) samples y on a light (`_lights.sample_emission`) for every
+camera path and finds the point s whose direction from the pinhole falls in that path's
+own pixel j: Newton from a seed fixed per pixel (the pixel centre's ray on the water's
+mean level; `_manifold.solve_near`). Call the result F_j(y): one root of the law, or none.
+The contribution of a root, per sample of pixel j (the camera's pixel importance W(w) =
+`camera_importance`: 1 / (A_pix cos^3)):
+
+    area light:   W(w) F(s) eta^2 T_r L_e(y -> s) |d w / d A_y| / p_A(y)
+    point light:  W(w) F(s) T_r I |d omega_y / d A_perp(c)| / p_sel
+    sun:          W(w) F(s) T_r E |d A_perp(beam) / d A_perp(c)| / p_sel
+
+(F: Fresnel reflectance, or transmittance for a refraction; eta^2: the radiance's n^2 law,
+(n_camera / n_light)^2, area lights only, as the point and sun forms are irradiances; T_r:
+the water's transmittance of c -> s for a camera under the water; the Jacobians are
+`_manifold.generalized_geometry`'s, through the implicit function of the root). Both
+segments are shadow-tested.
+
+MIS (power or balance heuristic, beta). In the area measure of y, per sample of pixel j:
+    p_g  = p_A(y)                                   the light's pdf (selection included),
+    p_eh = W(w) P_sel(s) |d w / d A_y| P_pass(c, s)  the camera ray through the surface
+(P_sel: the camera path's Fresnel choice of the lobe at s; P_pass: its water's
+distance-sampling factor, 1 above the water). The glint technique takes
+w_g = p_g^beta / (p_g^beta + p_eh^beta) of the paths F_j returns, the emitter hit
+w_eh = 1 - w_g of those (`emitter_share`, evaluated at every emitter hit of that shape
+with the same F_j) and w_eh = 1 (its weight without glints, as no other technique makes
+these paths) of every other path. So on every path w_g + w_eh = 1 whatever the solver
+misses (a root outside its seed's basin, one of a fold's pair): the estimator is
+unbiased by construction, and only its variance depends on how often F_j finds the
+root. Point lights and the sun cannot be hit (p_eh = 0): w_g = 1, light no other
+technique finds. (The roulette's survival at s is left out of p_eh: no path this short
+meets the roulette in a shipped configuration, and any positive pdfs keep the weights'
+sum 1.)
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from . import _geometry as geometry
+from . import _lights as lights
+from . import _manifold as manifold
+from . import _media as media
+from . import _subpath as subpath
+from . import _vec as vec
+from ._camera import camera_importance, generate_ray
+from ._config import RenderConfig
+from ._materials import fresnel_dielectric
+from ._scene import LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, Scene
+from ._vec import Vec3
+
+ITERS = 8  # Newton iterations from the pixel's seed (the root lies within a pixel's footprint)
+STREAM = 0x67_6C_69_6E  # fold_in tag of the glint samples' key ("glin")
+
+
+def applies(scene: Scene) -> bool:
+    """The scene has water and a light a glint can show (area, point, sun)."""
+    return scene.water.enabled and any(
+        k in (LIGHT_RECT, LIGHT_SPHERE, LIGHT_POINT, LIGHT_SUN) for k in scene.lights.kind)
+
+
+def law(scene: Scene, c: Vec3):
+    """The law of the glints seen from the pinhole c (a traced bool: refraction iff the
+    camera is under the water) and whether glints exist for it (a dispersive water's
+    refraction is a hero-only path: no glints, the emitter hits keep those paths)."""
+    refract = manifold.below(scene.water, c)
+    if scene.materials.dispersive:
+        return refract, ~refract
+    return refract, jnp.ones((), bool)
+
+
+def seed(scene: Scene, pixel):
+    """(x, z, ok): the seed of pixel `pixel`'s Newton: its centre ray on the water's mean
+    level, inside the footprint."""
+    cam = scene.camera
+    dt = cam.origin.dtype
+    half = jnp.asarray(0.5, dt)
+    c, d = generate_ray(cam, pixel, half, half)
+    w = scene.water
+    dy = jnp.where(jnp.abs(d.y) > 1e-12, d.y, 1e-12)
+    t = (w.level - c.y) / dy
+    x, z = c.x + t * d.x, c.z + t * d.z
+    fp = w.footprint
+    ok = (t > 0) & (x > fp[0]) & (x < fp[1]) & (z > fp[2]) & (z < fp[3])
+    return jnp.clip(x, fp[0], fp[1]), jnp.clip(z, fp[2], fp[3]), ok
+
+
+def _fresnel(scene: Scene, c: Vec3, s: Vec3, refract: bool):
+    """(F [C], P_sel): the factor the interface gives the glint (R, or 1 - R) per channel,
+    and the camera path's probability of choosing that lobe at s (`_materials`' hero)."""
+    water = scene.water
+    _, hx, hz = geometry.water_height(water, s.x, s.z)
+    n = vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
+    cos_o = vec.dot(n, vec.normalize(c - s))
+    ior = scene.materials.ior[water.mat]
+    eta = jnp.where(cos_o >= 0, ior, 1.0 / ior)
+    R, _ = fresnel_dielectric(cos_o, eta)
+    R_h = R[0] if jnp.ndim(R) else R
+    C = scene.channels
+    return (jnp.where(refract, 1.0 - R, R) * jnp.ones((C,), c.x.dtype),
+            jnp.where(refract, 1.0 - R_h, R_h))
+
+
+def _cam_medium(scene: Scene, c: Vec3, s: Vec3, refract: bool):
+    """(T_r [C], P_pass) of c -> s: the water's transmittance and the camera path's
+    distance-sampling factor (a camera under the water: a refraction glint)."""
+    C = scene.channels
+    dt = c.x.dtype
+    d = vec.length(s - c)
+    return (jnp.where(refract, media.transmittance(scene.water, d), 1.0) * jnp.ones((C,), dt),
+            jnp.where(refract, subpath.dist_pdf(scene.water, jnp.ones((), bool), False, d), 1.0))
+
+
+def emitter_pdf(scene: Scene, c: Vec3, s: Vec3, y: Vec3, n_y: Vec3, refract: bool):
+    """p_eh: the emitter-hit technique's pdf of y (area measure, per sample of the pixel)
+    through the root s (module doc)."""
+    G = manifold.generalized_geometry(scene.water, c, s, y, refract=refract, n_b=n_y)
+    return _emitter_pdf(scene, c, s, refract, G)
+
+
+def _emitter_pdf(scene: Scene, c: Vec3, s: Vec3, refract, G):
+    """`emitter_pdf` from the chain's |d w / d A_y| = G."""
+    imp = camera_importance(scene, vec.normalize(s - c))[1]
+    _, P_sel = _fresnel(scene, c, s, refract)
+    _, P_pass = _cam_medium(scene, c, s, refract)
+    return jax.lax.stop_gradient(imp * P_sel * G * P_pass)
+
+
+def glint_weight(cfg: RenderConfig, p_g, p_eh):
+    """w_g = p_g^beta / (p_g^beta + p_eh^beta) (module doc); the emitter hit's share is the
+    same function with the pdfs swapped."""
+    return _share(cfg, p_g, p_eh)
+
+
+def _share(cfg: RenderConfig, p_own, p_other):
+    beta = 2.0 if cfg.mis == "power" else 1.0
+    r = jnp.where(p_own > 0, p_other / jnp.where(p_own > 0, p_own, 1.0), jnp.inf)
+    return jnp.where(p_own > 0, 1.0 / (1.0 + r ** beta), 0.0)
+
+
+def _one(scene: Scene, cfg: RenderConfig, pixel, u, refract, exists):
+    """One camera path's glint sample (pixel `pixel`, uniforms u [5]; the law `refract`,
+    `exists`: `law`) -> [C]."""
+    water = scene.water
+    cam = scene.camera
+    dt = cam.origin.dtype
+    C = scene.channels
+    c = vec.from_array(cam.origin)
+    kinds = scene.lights.kind
+    e = lights.sample_emission(scene, u)
+    is_point = jnp.zeros((), bool)
+    for k, kind in enumerate(kinds):
+        if kind == LIGHT_POINT:
+            is_point = is_point | (e.light == k)
+    x0, z0, seed_ok = seed(scene, pixel)
+    out = jnp.zeros((C,), dt)
+    ends = []  # b a point (area and point lights), b a direction (the sun)
+    if any(k in (LIGHT_RECT, LIGHT_SPHERE, LIGHT_POINT) for k in kinds):
+        ends.append(False)
+    if LIGHT_SUN in kinds:
+        ends.append(True)
+    for b_dir in ends:
+        b = e.d if b_dir else e.p
+        use = (e.infinite & e.delta) if b_dir else ~e.infinite
+        r = manifold.solve_near(water, c, b, x0, z0, refract=refract, b_is_direction=b_dir,
+                                iters=ITERS)
+        s = r.s
+        w = vec.normalize(s - c)
+        pix, imp, inside = camera_importance(scene, w)
+        found = use & exists & seed_ok & r.valid & inside & (pix == pixel)
+        # ---- visibility: c -> s (nothing before the root), s -> y ----
+        d1 = vec.length(s - c)
+        vis = geometry.unoccluded(scene, c, w, d1 * (1.0 - 1e-4), cfg.march_steps)
+        _, hx, hz = geometry.water_height(water, s.x, s.z)
+        n_s = vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
+        w2 = -b if b_dir else vec.normalize(b - s)
+        o2 = subpath.offset(s, n_s, w2)
+        t2 = jnp.asarray(jnp.inf, dt) if b_dir else vec.length(b - o2) * (1.0 - 1e-4)
+        vis = vis & geometry.unoccluded(scene, o2, w2, t2, cfg.march_steps)
+        # ---- contribution ----
+        F, _ = _fresnel(scene, c, s, refract)
+        Tr, _ = _cam_medium(scene, c, s, refract)
+        base = imp * F * Tr / e.pdf_pos  # 1 / (p_sel p_A); 1 / p_sel: point, sun
+        if b_dir:
+            G = manifold.generalized_geometry(water, c, s, b, refract=refract,
+                                              b_is_direction=True)
+            val = base * scene.lights.radiance[e.light] * G
+            wgt = jnp.ones((), dt)
+        else:
+            # area lights: radiance towards s, the n^2 law, MIS against the emitter hit
+            G_a = manifold.generalized_geometry(water, c, s, b, refract=refract, n_b=e.n)
+            Le, _ = lights.emitted_surface(scene, e.light, vec.normalize(s - b), e.n,
+                                           jnp.ones((), dt))
+            scale = manifold.radiance_scale(water, c, b, refract=refract)
+            area = base * Le * scale * G_a
+            p_eh = _emitter_pdf(scene, c, s, refract, G_a)
+            w_area = glint_weight(cfg, jax.lax.stop_gradient(e.pdf_pos), p_eh)
+            if any(k == LIGHT_POINT for k in kinds):
+                G_p = manifold.generalized_geometry(water, c, s, b, refract=refract)
+                point = base * lights.emitted_toward(scene, e.light, w2, e.n) * G_p
+                val = jnp.where(is_point, point, area)
+                wgt = jnp.where(is_point, 1.0, w_area)
+            else:
+                val, wgt = area, w_area
+        out = out + jnp.where(found & vis, val * wgt, 0.0)
+    return out
+
+
+def glints(scene: Scene, cfg: RenderConfig, pixel, key):
+    """The glint technique for every camera path (its pixel [N]): [N, C] per path, the
+    film's mean over its pixel's samples as every camera technique."""
+    N = pixel.shape[0]
+    dt = scene.camera.origin.dtype
+    u = jax.random.uniform(key, (N, 5), dt)
+    refract, exists = law(scene, vec.from_array(scene.camera.origin))
+    return jax.vmap(lambda p, uu: _one(scene, cfg, p, uu, refract, exists))(pixel, u)
+
+
+def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, escaped, j, pixel):
+    """The emitter hit's share w_eh of its path z0 (pinhole) -> z1 -> z2 (on `light`) at
+    camera vertex z_j (module doc): 1 unless j = 2, z1 is on the water surface, the light
+    is an area light and F_pixel(z2) returns z1; then p_eh^beta / (p_eh^beta + p_g^beta).
+    z1, z2: one vertex each of a `PathEnds` (p, n, kind, mat read)."""
+    water = scene.water
+    dt = z0.x.dtype
+    kinds = scene.lights.kind
+    is_area = jnp.zeros((), bool)
+    for k, kind in enumerate(kinds):
+        if kind in (LIGHT_RECT, LIGHT_SPHERE):
+            is_area = is_area | (light == k)
+    shape = ((j == 2) & ~escaped & is_area & (z1.kind == MAT_DIELECTRIC)
+             & (z1.mat == water.mat))
+    x0, z0_, seed_ok = seed(scene, pixel)
+    refract, exists = law(scene, z0)
+    sg = jax.lax.stop_gradient
+    y = vec.Vec3(*(sg(a) for a in z2.p))
+    r = manifold.solve_near(water, z0, y, x0, z0_, refract=refract, iters=ITERS)
+    s = r.s
+    pix, _, inside = camera_importance(scene, vec.normalize(s - z0))
+    d = vec.length(s - z0)
+    same = vec.length(sg(s) - sg(z1.p)) <= 1e-4 * (1.0 + d)
+    found = shape & exists & seed_ok & r.valid & inside & (pix == pixel) & same
+    p_eh = emitter_pdf(scene, z0, s, y, z2.n, refract)
+    p_g = lights.light_point_pdf(scene, light, y)
+    return jnp.where(found, _share(cfg, p_eh, p_g), jnp.ones((), dt))  # 1 - glint_weight

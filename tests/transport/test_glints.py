@@ -1,0 +1,367 @@
+"""The glint technique (`jaxvcm._glints`): the lights seen in the water surface from the
+pinhole, by a manifold connection per camera path, MIS-weighted against the emitter hits.
+
+Closed forms (flat water: the surface is a plane mirror):
+  * a point light of intensity I at y: its mirror image y' = (y.x, 2 level - y.y, y.z)
+    at distance D from the pinhole c; the pixel that holds the direction c -> y' gets
+    W(w) R(theta) I / D^2 (the irradiance R I / D^2 across the ray, times the pixel's
+    importance W = 1 / (A_pix cos^3)), every other pixel 0;
+  * the sun of irradiance E travelling along d: the mirror keeps the beam's section, so
+    the pixel of the direction -(d.x, -d.y, d.z) gets W(w) R(theta) E.
+Unbiasedness: PT with glints against PT without (the same camera paths, an independent
+glint sample each) on a pool whose light is large enough for the emitter hits alone to
+converge; a planted mistake (the emitter hits keep their full weight) must fail.
+Weights: on paths the solver returns, w_g + w_eh = 1 (glint weight from the glint side,
+emitter-hit share recomputed at the emitter hit from its own vertices).
+Gradients: with respect to a wave's amplitude (through the root's implicit function) and
+the light's intensity, against central finite differences.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxvcm
+from jaxvcm import Technique
+from jaxvcm import _glints as glints
+from jaxvcm import _manifold as manifold
+from jaxvcm._vec import Vec3
+from tests import _oracles as O
+from tests._scenes import shipped_doc
+
+GLINT = Technique("glint", 1, 1)
+EH = Technique("connection", 0, 3)  # pinhole -> water surface -> light
+N = 24  # image side
+
+
+def _pool(**over):
+    return jaxvcm.scene_from_dict(shipped_doc("pool", N, N, **over), "pool")
+
+
+def _images(scene, cfg, keys):
+    f = jax.jit(jax.vmap(lambda k: jaxvcm.technique_images(scene, k, cfg, 0)[0].images))
+    return np.asarray(f(keys))
+
+
+def _labels(scene, cfg):
+    return jax.eval_shape(lambda k: jaxvcm.technique_images(scene, k, cfg, 0)[0],
+                          jax.random.key(0)).labels
+
+
+def _pixel_of(scene, w):
+    """(pixel index, W) of the unit direction w leaving the pinhole (NumPy, from the
+    camera's definition: the film at distance 1, pixels of area A_pix)."""
+    cam = scene.camera
+    f, r, u = (np.asarray(a, float) for a in (cam.forward, cam.right, cam.up))
+    t = float(cam.tan_half_fov)
+    aspect = cam.width / cam.height
+    cos = w @ f
+    px = (w @ r / cos / (aspect * t) + 1) * 0.5 * cam.width
+    py = (1 - w @ u / cos / t) * 0.5 * cam.height
+    a_pix = (2 * t * aspect / cam.width) * (2 * t / cam.height)
+    return int(py) * cam.width + int(px), 1.0 / (a_pix * cos**3)
+
+
+# ---------------------------------------------------------------- closed forms
+def _glint_stage(scene, cfg, keys):
+    """The glint technique's image [K, H, W, C] of one sample per pixel, per key."""
+    pix = jnp.arange(N * N, dtype=jnp.int32)
+    f = jax.jit(jax.vmap(lambda k: glints.glints(scene, cfg, pix, k)))
+    return np.asarray(f(keys))
+
+
+def test_flat_water_glint_closed_form():
+    # flat water at level 0 under a point light and the sun: each pixel's sample picks one
+    # of them (p_sel) and its glint is deterministic (w_g = 1: no camera ray hits a point
+    # light or the sun), so the glint pixel of light k holds 0 or its closed form / p_sel_k
+    # and every other pixel 0
+    y = np.array([0.25, 3.0, -0.25])
+    d = np.array([0.1, -4.7, 1.6]) / np.linalg.norm([0.1, -4.7, 1.6])
+    scene = _pool(water__waves=[], lights=[
+        {"type": "point", "position": list(y), "intensity": 40.0},
+        {"type": "sun", "direction": list(d), "irradiance": 5.0}])
+    cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2, glints=True)
+    imgs = _glint_stage(scene, cfg, jax.random.split(jax.random.key(1), 16)).reshape(16, N * N, 3)
+    c = np.asarray(scene.camera.origin, float)
+    y_img = y * np.array([1, -1, 1])  # the point's mirror image in the plane y = 0
+    D = np.linalg.norm(y_img - c)
+    # (direction from the pinhole, irradiance across the ray before Fresnel)
+    forms = [((y_img - c) / D, 40.0 / D**2), (-d * np.array([1, -1, 1]), 5.0)]
+    sel = np.asarray(jaxvcm._lights.selection_pdf(scene))
+    pixels, values = [], []
+    for k, (w, E) in enumerate(forms):
+        pix, W = _pixel_of(scene, w)
+        R = jaxvcm.fresnel_unpolarised(abs(w[1]), 1.33)
+        pixels.append(pix)
+        values.append(W * R * E / sel[k])
+    assert pixels[0] != pixels[1]
+    others = np.ones(N * N, bool)
+    others[pixels] = False
+    assert not imgs[:, others].any()
+    for pix, v in zip(pixels, values):
+        got = imgs[:, pix, :]
+        hit = got[:, 0] > 0
+        assert 0 < hit.sum() < len(hit)  # the light was picked by some samples, not all
+        np.testing.assert_allclose(got[hit], v, rtol=2e-4)
+
+
+# ---------------------------------------------------------------- MIS weights
+def test_weights_sum_to_one_on_the_paths_the_solver_returns():
+    # random light points y of the shipped pool's light, each pixel's root F_j(y) (the
+    # glint side); at the emitter hit of the same path (z1 = the root, z2 = y) the share
+    # is recomputed from those vertices alone: w_g + w_eh = 1 on every returned path
+    scene = jaxvcm.load_scene("scenes/pool.toml", width=96, height=96)
+    cfg = jaxvcm.RenderConfig(algorithm="vcm", glints=True)
+    rng = np.random.default_rng(3)
+    f32 = np.float32
+    c0 = np.asarray(scene.camera.origin)
+    # the pairs (pixel, y) that hold a root: every root of 48 light points (the full
+    # search: a 40 x 40 seed grid over the pool) and the pixel its direction falls in
+    ys = np.stack([0.25 + rng.uniform(-0.075, 0.075, 48), np.full(48, 3.0),
+                   -0.25 + rng.uniform(-0.075, 0.075, 48)], 1).astype(f32)
+    sol = jax.jit(jax.vmap(lambda b: manifold.solve(
+        scene.water, Vec3(*(jnp.asarray(v, f32) for v in c0)), b, refract=False, capacity=48,
+        grid=40)))(Vec3(*(jnp.asarray(ys[:, i]) for i in range(3))))
+    roots = np.stack([np.asarray(a) for a in sol.s], -1)  # [48, K, 3]
+    valid = np.asarray(sol.valid)
+    pairs = []
+    for i, k in zip(*np.nonzero(valid)):
+        w = roots[i, k] - c0
+        p, _ = _pixel_of(scene, w / np.linalg.norm(w))
+        if 0 <= p < 96 * 96:
+            pairs.append((p, i))
+    M = len(pairs)
+    pix = jnp.asarray([p for p, _ in pairs], jnp.int32)
+    yy = ys[[i for _, i in pairs]]
+    y = Vec3(*(jnp.asarray(yy[:, i]) for i in range(3)))
+    n_y = Vec3(jnp.zeros(M, f32), -jnp.ones(M, f32), jnp.zeros(M, f32))
+    c = Vec3(*(jnp.full(M, v, f32) for v in c0))
+    light = jnp.zeros(M, jnp.int32)
+
+    def one(p, c, y, n_y, light, shift):
+        x0, z0, ok = glints.seed(scene, p)
+        r = manifold.solve_near(scene.water, c, y, x0, z0, refract=False, iters=glints.ITERS)
+        pixel, _, inside = jaxvcm._camera.camera_importance(scene, (r.s - c) / jnp.sqrt(
+            (r.s - c).x ** 2 + (r.s - c).y ** 2 + (r.s - c).z ** 2))
+        found = ok & r.valid & inside & (pixel == p)
+        p_eh = glints.emitter_pdf(scene, c, r.s, y, n_y, False)
+        p_g = jaxvcm._lights.light_point_pdf(scene, light, y)
+        w_g = glints.glint_weight(cfg, p_g, p_eh)
+        z1 = jaxvcm._subpath.PathEnds(*([None] * 16))._replace(
+            p=r.s + Vec3(shift, 0.0 * shift, 0.0 * shift), kind=jnp.int32(1),
+            mat=jnp.int32(scene.water.mat))
+        z2 = z1._replace(p=y, n=n_y)
+        w_eh = glints.emitter_share(scene, cfg, c, z1, z2, light, jnp.asarray(False), 2, p)
+        return found, w_g, w_eh
+
+    args = (pix, c, y, n_y, light)
+    found, w_g, w_eh = (np.asarray(a) for a in jax.jit(jax.vmap(one))(*args, jnp.zeros(M, f32)))
+    assert M > 500
+    # Newton from the pixel's seed returns the root that lies in the pixel
+    assert found.mean() > 0.95  # (98.7 % when written)
+    # both heuristics' weights come from the same pdfs: the sum is 1 to float32 rounding
+    np.testing.assert_allclose((w_g + w_eh)[found], 1.0, atol=2e-6)
+    assert np.all(w_eh[~found] == 1.0)  # paths F_j does not return: the emitter hit's alone
+    # both techniques take part; at this size the glint's pdf dominates (a pixel's footprint
+    # reflects a region of the light's plane far larger than the light)
+    assert np.all(w_eh[found] > 0) and np.mean(w_g[found]) > 0.5
+    # planted mistake: an emitter hit 1 mm off the root is another path (a different
+    # z1): the share must not be taken, so the pair no longer sums to 1
+    _, w_g2, w_eh2 = (np.asarray(a) for a in jax.jit(jax.vmap(one))(
+        *args, jnp.full(M, 1e-3, f32)))
+    assert np.all(w_eh2 == 1.0)
+    assert np.all((w_g2 + w_eh2)[found] > 1.0 + 1e-3)
+
+
+# ---------------------------------------------------------------- unbiasedness
+def _first_water_hit(waves, level, o, d, t0, t1, steps=256):
+    """First crossing of the heightfield by rays o + t d, t in [t0, t1] ([n] each): a dense
+    march (the slab's rays cross at most a few cm of it here) and bisection, float64."""
+    ts = t0[:, None] + (t1 - t0)[:, None] * np.linspace(0.0, 1.0, steps)[None]
+    p = o[:, None] + ts[..., None] * d[:, None]
+    f = p[..., 1] - O.water_h(waves, level, p[..., 0], p[..., 2])
+    below = f <= 0
+    hit = below.any(axis=1)
+    i = np.argmax(below, axis=1)
+    lo = ts[np.arange(len(ts)), np.maximum(i - 1, 0)]
+    hi = ts[np.arange(len(ts)), i]
+    for _ in range(60):
+        m = 0.5 * (lo + hi)
+        q = o + m[:, None] * d
+        fm = q[:, 1] - O.water_h(waves, level, q[:, 0], q[:, 2])
+        lo, hi = np.where(fm > 0, m, lo), np.where(fm > 0, hi, m)
+    return np.where(hit, hi, np.inf)
+
+
+def _reflection_oracle(scene, Le, lo, hi, sub=4, fine=48):
+    """float64 NumPy image [H, W] of the light reflected once by the water surface into the
+    pinhole: stratified rays per pixel, each R(theta) Le where its reflection reaches the
+    rect light's emitting face unoccluded (walls black: a ray that meets a wall first
+    carries nothing), 0 elsewhere. sub x sub rays in every pixel, then fine x fine in the
+    pixels that saw light and their neighbours (the glints' edges)."""
+    cam = scene.camera
+    W, H = cam.width, cam.height
+    coarse = _reflected(scene, Le, lo, hi, np.arange(W * H), sub)
+    lit = (coarse > 0).reshape(H, W)
+    near = lit.copy()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near |= np.roll(np.roll(lit, dy, 0), dx, 1)
+    out = np.zeros(W * H)
+    idx = np.flatnonzero(near)
+    out[idx] = _reflected(scene, Le, lo, hi, idx, fine)
+    return out.reshape(H, W)
+
+
+def _reflected(scene, Le, lo, hi, pixels, sub):
+    """The mean over sub x sub stratified rays of each pixel in `pixels` (row-major)."""
+    cam = scene.camera
+    W, H = cam.width, cam.height
+    f, r, u = (np.asarray(a, float) for a in (cam.forward, cam.right, cam.up))
+    c = np.asarray(cam.origin, float)
+    t = float(cam.tan_half_fov)
+    g = (np.arange(sub) + 0.5) / sub
+    gx, gy = np.meshgrid(g, g)
+    PX = (pixels % W)[:, None] + gx.ravel()[None]  # [n, sub^2]
+    PY = (pixels // W)[:, None] + gy.ravel()[None]
+    sx = (2 * PX / W - 1) * (W / H) * t
+    sy = (1 - 2 * PY / H) * t
+    d = O.unit(f + sx[..., None] * r + sy[..., None] * u).reshape(-1, 3)
+    o = np.broadcast_to(c, d.shape)
+    waves, level = O.waves_of(scene.water), float(scene.water.level)
+    amp = np.abs(waves[:, 0]).sum()
+    tops = [hi[1]] * 4
+    faces = O.basin_faces(lo, hi, tops)
+    # camera ray: into the slab of the waves, first surface crossing before any wall
+    t0 = (level + amp - c[1]) / d[:, 1]
+    t1 = (level - amp - c[1]) / d[:, 1]
+    tw = _first_water_hit(waves, level, o, d, t0, t1)
+    tb = O.ref_basin(o, d, faces)[0]
+    s = o + tw[:, None] * d
+    fp = np.asarray(scene.water.footprint, float)
+    ok = np.isfinite(tw) & (tw < tb) & (s[:, 0] > fp[0]) & (s[:, 0] < fp[1]) & (
+        s[:, 2] > fp[2]) & (s[:, 2] < fp[3])
+    k = int(scene.lights.shape[0])  # the light's rect (it also blocks camera rays)
+    p0, e1, e2 = (np.asarray(a[k], float) for a in (scene.rects.p0, scene.rects.e1,
+                                                     scene.rects.e2))
+
+    def on_rect(o, w):
+        t = (p0[1] - o[:, 1]) / np.where(w[:, 1] != 0, w[:, 1], 1e-300)
+        q = o + t[:, None] * w - p0
+        a1, a2 = q @ e1 / (e1 @ e1), q @ e2 / (e2 @ e2)
+        return (t > 0) & (a1 >= 0) & (a1 <= 1) & (a2 >= 0) & (a2 <= 1), t
+
+    hit0, t0_l = on_rect(o, d)
+    ok = ok & ~(hit0 & (t0_l < tw))
+    n = O.heightfield_normal(waves, level, s[:, 0], s[:, 2])
+    cos = -np.sum(d * n, axis=1)
+    w = d + 2 * cos[:, None] * n  # mirror reflection
+    # reflected ray: out of the slab without meeting the surface again, past the walls'
+    # tops without meeting a wall, onto the light's plane inside the rect (normal -y)
+    tout = np.maximum((level + amp - s[:, 1]) / np.maximum(w[:, 1], 1e-9), 0) + 1e-6
+    again = np.isfinite(_first_water_hit(waves, level, s + 1e-7 * w, w, np.zeros(len(s)),
+                                         tout, steps=64))
+    tb2 = O.ref_basin(s + 1e-7 * w, w, faces)[0]
+    hit1, t_l = on_rect(s, w)
+    on = (w[:, 1] > 0) & hit1 & (t_l < tb2)
+    R = jaxvcm.fresnel_unpolarised(np.clip(cos, 0, 1), float(scene.water.ior))
+    val = np.where(ok & on & ~again, R * Le, 0.0)
+    return val.reshape(len(pixels), sub * sub).mean(axis=1)
+
+
+@pytest.fixture(scope="module")
+def pool_runs():
+    # the shipped pool and light with longer waves (wavelengths and amplitudes x 4: the
+    # same slopes, one root per 8 cm pixel footprint), black walls and floor, PT to depth
+    # 2: besides the light's direct view the only light is pinhole -> water surface ->
+    # light (the emitter hits (0, 3) through the surface and the glints); glints on and
+    # off, the same camera paths
+    doc = shipped_doc("pool", N, N, materials__floor__albedo=0.0,
+                      materials__wall__albedo=[0.0, 0.0, 0.0])
+    doc["water"]["waves"] = [[4 * A, kx / 4, kz / 4, ph] for A, kx, kz, ph in
+                             doc["water"]["waves"]]
+    scene = jaxvcm.scene_from_dict(doc, "pool")
+    keys = jax.random.split(jax.random.key(7), 64)
+    out = {}
+    for g in (False, True):
+        cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2, glints=g)
+        labels = _labels(scene, cfg)
+        ims = _images(scene, cfg, keys)
+        out[g] = {lab: ims[:, i] for i, lab in enumerate(labels)}
+    basin = doc["shapes"][0]
+    out["oracle"] = _reflection_oracle(scene, doc["lights"][0]["radiance"],
+                                       np.array(basin["min"], float),
+                                       np.array(basin["max"], float))
+    return out
+
+
+def test_glints_and_emitter_hits_against_reflection_oracle(pool_runs):
+    # the oracle: 48 x 48 rays per lit pixel (from 32 x 32 to 64 x 64 its image mean moves
+    # by 0.6 %: the 1 % allowance below)
+    ref = pool_runs["oracle"]  # [H, W], every channel alike
+    est = (pool_runs[True][EH] + pool_runs[True][GLINT]).mean(axis=-1)  # [P, H, W]
+    P = len(est)
+    tot = est.mean(axis=(1, 2))
+    se = tot.std(ddof=1) / np.sqrt(P)
+    # the bar can see a 5 % error at 4 standard errors
+    assert 4 * se < 0.05 * ref.mean()
+    assert abs(tot.mean() - ref.mean()) < 4 * se + 0.01 * ref.mean()
+    # and pixel by pixel, where the oracle is lit
+    m, s_px = est.mean(0), est.std(0, ddof=1) / np.sqrt(P)
+    assert np.all(np.abs(m - ref) <= 4.5 * s_px + 0.03 * ref.max())
+    # the emitter hits alone, on the same camera paths: a handful of hits in 64 passes at
+    # most (what the glints are for): far off, or far noisier
+    eh = pool_runs[False][EH].mean(axis=-1).mean(axis=(1, 2))
+    assert abs(eh.mean() - ref.mean()) > 0.5 * ref.mean() or eh.std() > 5 * tot.std()
+
+
+def test_glints_add_one_technique(pool_runs):
+    # the glint technique is one more image beside the others (the film's sum), and the
+    # emitter hits' other path lengths keep their values (only (0, 3) shares its paths)
+    assert set(pool_runs[True]) == set(pool_runs[False]) | {GLINT}
+    for lab in pool_runs[False]:
+        if lab != EH:
+            np.testing.assert_array_equal(pool_runs[True][lab], pool_runs[False][lab])
+
+
+# ---------------------------------------------------------------- gradients
+def test_gradients_through_the_root():
+    # one small wave over otherwise flat water, a point light: the glint is a single
+    # deterministic pixel whose value moves smoothly with the amplitude (the root by the
+    # implicit function theorem, the Jacobian by its derivative); the intensity enters
+    # linearly
+    scene = _pool(water__waves=[[0.004, 3.0, 2.0, 0.4]],
+                  lights=[{"type": "point", "position": [0.25, 3.0, -0.25], "intensity": 40.0}])
+    cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2, glints=True)
+    key = jax.random.key(2)
+    pix = jnp.arange(N * N, dtype=jnp.int32)
+
+    def total(amp, inten):
+        s = eqx.tree_at(lambda t: t.water.amp, scene, amp)
+        s = eqx.tree_at(lambda t: t.lights.radiance, s, inten)
+        return glints.glints(s, cfg, pix, key).sum()
+
+    amp0, i0 = scene.water.amp, scene.lights.radiance
+    f = jax.jit(total)
+    g_amp, g_int = jax.jit(jax.grad(total, argnums=(0, 1)))(amp0, i0)
+    h = 1e-4
+    fd = (f(amp0 + h, i0) - f(amp0 - h, i0)) / (2 * h)
+    assert float(f(amp0, i0)) > 0
+    assert abs(float(fd)) > 1e-3 * float(f(amp0, i0)) / 0.004  # the amplitude matters
+    np.testing.assert_allclose(float(g_amp[0]), float(fd), rtol=0.02)
+    # linear in the intensity: sum_c I_c d total / d I_c = total
+    np.testing.assert_allclose(float(jnp.sum(g_int * i0)), float(f(amp0, i0)), rtol=1e-4)
+
+
+# ---------------------------------------------------------------- configuration
+@pytest.mark.parametrize("alg", ["ppm", "lt"])
+def test_glints_need_weighted_emitter_hits(alg):
+    # ppm's emission along a delta prefix takes weight 1 and lt has no emitter hits:
+    # nothing to share the glints' paths with, so the flag is refused by name
+    with pytest.raises(ValueError, match=r"^config\.glints: .*" + alg):
+        jaxvcm.RenderConfig(algorithm=alg, glints=True)
+    assert jaxvcm.RenderConfig(algorithm="vcm", glints=True).record()["glints"] is True
