@@ -56,6 +56,7 @@ from . import _vec as vec
 from ._camera import camera_importance, generate_ray
 from ._config import RenderConfig
 from ._materials import fresnel_dielectric
+from ._queue import masked_map
 from ._scene import LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELECTRIC, Scene
 from ._vec import Vec3
 
@@ -148,82 +149,110 @@ def _share(cfg: RenderConfig, p_own, p_other):
     return jnp.where(p_own > 0, 1.0 / (1.0 + r ** beta), 0.0)
 
 
-def _one(scene: Scene, cfg: RenderConfig, pixel, u, refract, exists):
-    """One camera path's glint sample (pixel `pixel`, uniforms u [5]; the law `refract`,
-    `exists`: `law`) -> [C]."""
-    water = scene.water
-    cam = scene.camera
-    dt = cam.origin.dtype
-    C = scene.channels
-    c = vec.from_array(cam.origin)
+def _ends(scene: Scene) -> list[bool]:
+    """The kinds of light end a glint has in this scene (static): a point (area and point
+    lights), a direction (the sun)."""
     kinds = scene.lights.kind
-    e = lights.sample_emission(scene, u)
-    is_point = jnp.zeros((), bool)
-    for k, kind in enumerate(kinds):
-        if kind == LIGHT_POINT:
-            is_point = is_point | (e.light == k)
-    x0, z0, seed_ok = seed(scene, pixel)
-    out = jnp.zeros((C,), dt)
-    ends = []  # b a point (area and point lights), b a direction (the sun)
+    ends = []
     if any(k in (LIGHT_RECT, LIGHT_SPHERE, LIGHT_POINT) for k in kinds):
         ends.append(False)
     if LIGHT_SUN in kinds:
         ends.append(True)
-    for b_dir in ends:
-        b = e.d if b_dir else e.p
-        use = (e.infinite & e.delta) if b_dir else ~e.infinite
-        r = manifold.solve_near(water, c, b, x0, z0, refract=refract, b_is_direction=b_dir,
-                                iters=ITERS)
-        s = r.s
-        w = vec.normalize(s - c)
-        pix, imp, inside = camera_importance(scene, w)
-        found = use & exists & seed_ok & r.valid & inside & (pix == pixel)
-        # ---- visibility: c -> s (nothing before the root), s -> y ----
-        d1 = vec.length(s - c)
-        vis = geometry.unoccluded(scene, c, w, d1 * (1.0 - 1e-4), cfg.march_steps)
-        _, hx, hz = geometry.water_height(water, s.x, s.z)
-        n_s = vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
-        w2 = -b if b_dir else vec.normalize(b - s)
-        o2 = subpath.offset(s, n_s, w2)
-        t2 = jnp.asarray(jnp.inf, dt) if b_dir else vec.length(b - o2) * (1.0 - 1e-4)
-        vis = vis & geometry.unoccluded(scene, o2, w2, t2, cfg.march_steps)
-        # ---- contribution ----
-        F, _ = _fresnel(scene, c, s, refract)
-        Tr, _ = _cam_medium(scene, c, s, refract)
-        base = imp * F * Tr / e.pdf_pos  # 1 / (p_sel p_A); 1 / p_sel: point, sun
-        if b_dir:
-            G = manifold.generalized_geometry(water, c, s, b, refract=refract,
-                                              b_is_direction=True)
-            val = base * scene.lights.radiance[e.light] * G
-            wgt = jnp.ones((), dt)
+    return ends
+
+
+def _search(scene: Scene, pixel, e: lights.Emission, refract, exists, b_dir: bool):
+    """F_pixel(y) for one camera path: (found, the root's x, z) (the cheap part: one
+    Newton solve from the pixel's seed, every path)."""
+    c = vec.from_array(scene.camera.origin)
+    b = e.d if b_dir else e.p
+    use = (e.infinite & e.delta) if b_dir else ~e.infinite
+    x0, z0, seed_ok = seed(scene, pixel)
+    r = manifold.solve_near(scene.water, c, b, x0, z0, refract=refract, b_is_direction=b_dir,
+                            iters=ITERS)
+    pix, _, inside = camera_importance(scene, vec.normalize(r.s - c))
+    found = use & exists & seed_ok & r.valid & inside & (pix == pixel)
+    return found, jax.lax.stop_gradient(r.s.x), jax.lax.stop_gradient(r.s.z)
+
+
+def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, refract,
+                  b_dir: bool):
+    """The weighted contribution [C] of a root the search found at (x, z) (the costly
+    part: the differentiable root, both shadow rays, the chain's Jacobians, MIS)."""
+    water = scene.water
+    dt = scene.camera.origin.dtype
+    kinds = scene.lights.kind
+    c = vec.from_array(scene.camera.origin)
+    b = e.d if b_dir else e.p
+    # the root again, from itself (no iteration: the polish step and its implicit-function
+    # derivatives, so gradients flow through it)
+    s = manifold.solve_near(water, c, b, x, z, refract=refract, b_is_direction=b_dir,
+                            iters=0).s
+    w = vec.normalize(s - c)
+    _, imp, _ = camera_importance(scene, w)
+    # ---- visibility: c -> s (nothing before the root), s -> y ----
+    d1 = vec.length(s - c)
+    vis = geometry.unoccluded(scene, c, w, d1 * (1.0 - 1e-4), cfg.march_steps)
+    _, hx, hz = geometry.water_height(water, s.x, s.z)
+    n_s = vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
+    w2 = -b if b_dir else vec.normalize(b - s)
+    o2 = subpath.offset(s, n_s, w2)
+    t2 = jnp.asarray(jnp.inf, dt) if b_dir else vec.length(b - o2) * (1.0 - 1e-4)
+    vis = vis & geometry.unoccluded(scene, o2, w2, t2, cfg.march_steps)
+    # ---- contribution ----
+    F, _ = _fresnel(scene, c, s, refract)
+    Tr, _ = _cam_medium(scene, c, s, refract)
+    base = imp * F * Tr / e.pdf_pos  # 1 / (p_sel p_A); 1 / p_sel: point, sun
+    if b_dir:
+        G = manifold.generalized_geometry(water, c, s, b, refract=refract, b_is_direction=True)
+        val = base * scene.lights.radiance[e.light] * G
+        wgt = jnp.ones((), dt)
+    else:
+        # area lights: radiance towards s, the n^2 law, MIS against the emitter hit
+        G_a = manifold.generalized_geometry(water, c, s, b, refract=refract, n_b=e.n)
+        Le, _ = lights.emitted_surface(scene, e.light, vec.normalize(s - b), e.n,
+                                       jnp.ones((), dt))
+        scale = manifold.radiance_scale(water, c, b, refract=refract)
+        area = base * Le * scale * G_a
+        p_eh = _emitter_pdf(scene, c, s, refract, G_a)
+        w_area = glint_weight(cfg, jax.lax.stop_gradient(e.pdf_pos), p_eh)
+        if any(k == LIGHT_POINT for k in kinds):
+            is_point = jnp.zeros((), bool)
+            for k, kind in enumerate(kinds):
+                if kind == LIGHT_POINT:
+                    is_point = is_point | (e.light == k)
+            G_p = manifold.generalized_geometry(water, c, s, b, refract=refract)
+            point = base * lights.emitted_toward(scene, e.light, w2, e.n) * G_p
+            val = jnp.where(is_point, point, area)
+            wgt = jnp.where(is_point, 1.0, w_area)
         else:
-            # area lights: radiance towards s, the n^2 law, MIS against the emitter hit
-            G_a = manifold.generalized_geometry(water, c, s, b, refract=refract, n_b=e.n)
-            Le, _ = lights.emitted_surface(scene, e.light, vec.normalize(s - b), e.n,
-                                           jnp.ones((), dt))
-            scale = manifold.radiance_scale(water, c, b, refract=refract)
-            area = base * Le * scale * G_a
-            p_eh = _emitter_pdf(scene, c, s, refract, G_a)
-            w_area = glint_weight(cfg, jax.lax.stop_gradient(e.pdf_pos), p_eh)
-            if any(k == LIGHT_POINT for k in kinds):
-                G_p = manifold.generalized_geometry(water, c, s, b, refract=refract)
-                point = base * lights.emitted_toward(scene, e.light, w2, e.n) * G_p
-                val = jnp.where(is_point, point, area)
-                wgt = jnp.where(is_point, 1.0, w_area)
-            else:
-                val, wgt = area, w_area
-        out = out + jnp.where(found & vis, val * wgt, 0.0)
-    return out
+            val, wgt = area, w_area
+    return jnp.where(vis, val * wgt, 0.0)
 
 
 def glints(scene: Scene, cfg: RenderConfig, pixel, key):
     """The glint technique for every camera path (its pixel [N]): [N, C] per path, the
-    film's mean over its pixel's samples as every camera technique."""
+    film's mean over its pixel's samples as every camera technique. Every path samples
+    its light point and runs its pixel's Newton solve; only the paths whose solve found a
+    root in the pixel (a few per cent in a pool) trace the shadow rays and evaluate the
+    Jacobians, as one work queue (`_queue.masked_map`)."""
     N = pixel.shape[0]
     dt = scene.camera.origin.dtype
     u = jax.random.uniform(key, (N, 5), dt)
     refract, exists = law(scene, vec.from_array(scene.camera.origin))
-    return jax.vmap(lambda p, uu: _one(scene, cfg, p, uu, refract, exists))(pixel, u)
+    e = jax.vmap(lambda uu: lights.sample_emission(scene, uu))(u)
+    out = jnp.zeros((N, scene.channels), dt)
+    lane = jnp.arange(N, dtype=jnp.int32)
+    for b_dir in _ends(scene):
+        found, x, z = jax.vmap(lambda p, ee: _search(scene, p, ee, refract, exists, b_dir))(
+            pixel, e)
+
+        def item(n, b_dir=b_dir, x=x, z=z):
+            en = jax.tree.map(lambda a: a[n], e)
+            return _contribution(scene, cfg, en, x[n], z[n], refract, b_dir)
+
+        out = out + masked_map(item, found, (lane,), 0.0, 16)
+    return out
 
 
 def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, escaped, j, pixel):

@@ -55,7 +55,8 @@ def _release_compiled_programs():
 _LONG_FILES = {"tests/transport/test_bidir.py": 296, "tests/host/test_devices.py": 248,
                "tests/merge/test_merge.py": 240, "tests/transport/test_spectral.py": 236,
                "tests/mis/test_mis_recursive.py": 188, "tests/transport/test_gradients.py": 188,
-               "tests/fit/test_fit.py": 162, "tests/docs/test_tutorials.py": 250}
+               "tests/fit/test_fit.py": 162, "tests/docs/test_tutorials.py": 250,
+               "tests/transport/test_glints.py": 90}
 
 
 @pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: no error where it is absent
