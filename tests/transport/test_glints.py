@@ -70,34 +70,79 @@ def _pixel_of(scene, w):
 def _glint_stage(scene, cfg, keys):
     """The glint technique's image [K, H, W, C] of one sample per pixel, per key."""
     pix = jnp.arange(N * N, dtype=jnp.int32)
-    f = jax.jit(jax.vmap(lambda k: glints.glints(scene, cfg, pix, k)))
-    return np.asarray(f(keys))
+    f = jax.jit(jax.vmap(lambda sc, k: glints.glints(sc, cfg, pix, k), in_axes=(None, 0)))
+    return np.asarray(f(scene, keys))
 
 
-def test_flat_water_glint_closed_form():
+def _refracted_point(c, y, eta):
+    """Flat water at level 0, pinhole c under it, point y above: (unit direction from c
+    to the refraction point, cos theta_air, cos theta_water, d omega_y / d A_perp(c)).
+    rho(theta_a) = H tan theta_a + D tan theta_w (sin theta_a = eta sin theta_w) is the
+    horizontal distance a ray leaving y at theta_a lands from y's foot at c's depth;
+    d omega = sin theta_a d theta_a d phi, d A = rho d rho d phi, d A_perp = d A cos theta_w."""
+    from scipy.optimize import brentq
+
+    H, D = y[1], -c[1]
+    h = np.array([c[0] - y[0], 0.0, c[2] - y[2]])
+    P = np.linalg.norm(h)
+
+    def rho(ta):
+        tw = np.arcsin(np.sin(ta) / eta)
+        return H * np.tan(ta) + D * np.tan(tw)
+
+    ta = brentq(lambda t: rho(t) - P, 0.0, 1.2)
+    tw = np.arcsin(np.sin(ta) / eta)
+    drho = H / np.cos(ta) ** 2 + D / np.cos(tw) ** 2 * np.cos(ta) / (eta * np.cos(tw))
+    dw_dA = np.sin(ta) / (P * drho * np.cos(tw))
+    w = -h / P * np.sin(tw) + np.array([0.0, np.cos(tw), 0.0])  # up and towards y's foot
+    return w, np.cos(ta), np.cos(tw), dw_dA
+
+
+@pytest.mark.parametrize("view", ["above", "under"])
+def test_flat_water_glint_closed_form(view):
     # flat water at level 0 under a point light and the sun: each pixel's sample picks one
     # of them (p_sel) and its glint is deterministic (w_g = 1: no camera ray hits a point
     # light or the sun), so the glint pixel of light k holds 0 or its closed form / p_sel_k
-    # and every other pixel 0
+    # and every other pixel 0. above: the mirror images; under: the camera 0.6 m under the
+    # water sees both through the surface (Fresnel T, the water's transmittance along the
+    # ray, no n^2 factor: these are irradiances, _refracted_point)
     y = np.array([0.25, 3.0, -0.25])
     d = np.array([0.1, -4.7, 1.6]) / np.linalg.norm([0.1, -4.7, 1.6])
+    over = {}
+    if view == "under":
+        over["camera"] = {"position": [0.1, -0.6, 0.2], "target": [0.2, 0.0, 0.05],
+                          "up": [0.0, 0.0, -1.0], "fov": 60.0, "width": N, "height": N}
     scene = _pool(water__waves=[], lights=[
         {"type": "point", "position": list(y), "intensity": 40.0},
-        {"type": "sun", "direction": list(d), "irradiance": 5.0}])
+        {"type": "sun", "direction": list(d), "irradiance": 5.0}], **over)
     cfg = jaxvcm.RenderConfig(algorithm="pt", max_depth=2, glints=True)
     imgs = _glint_stage(scene, cfg, jax.random.split(jax.random.key(1), 16)).reshape(16, N * N, 3)
     c = np.asarray(scene.camera.origin, float)
-    y_img = y * np.array([1, -1, 1])  # the point's mirror image in the plane y = 0
-    D = np.linalg.norm(y_img - c)
-    # (direction from the pinhole, irradiance across the ray before Fresnel)
-    forms = [((y_img - c) / D, 40.0 / D**2), (-d * np.array([1, -1, 1]), 5.0)]
+    eta = 1.33
+    sig_t = np.asarray(scene.water.sigma_a, float) + np.asarray(scene.water.sigma_s, float)
+    if view == "above":
+        y_img = y * np.array([1, -1, 1])  # the point's mirror image in the plane y = 0
+        D = np.linalg.norm(y_img - c)
+        w_p, w_s = (y_img - c) / D, -d * np.array([1, -1, 1])
+        # (direction from the pinhole, irradiance across the ray at the pinhole)
+        forms = [(w_p, 40.0 / D**2 * jaxvcm.fresnel_unpolarised(abs(w_p[1]), eta)),
+                 (w_s, 5.0 * jaxvcm.fresnel_unpolarised(abs(w_s[1]), eta))]
+    else:
+        w_p, ca, cw, dw_dA = _refracted_point(c, y, eta)
+        T_p = 1.0 - jaxvcm.fresnel_unpolarised(ca, eta)
+        ca_s = -d[1]
+        cw_s = np.sqrt(1.0 - (1.0 - ca_s**2) / eta**2)
+        h = np.array([d[0], 0.0, d[2]]) / np.hypot(d[0], d[2])
+        w_s = -(h * np.sqrt(1.0 - cw_s**2) - np.array([0.0, cw_s, 0.0]))  # against the beam
+        T_s = 1.0 - jaxvcm.fresnel_unpolarised(ca_s, eta)
+        forms = [(w_p, 40.0 * T_p * dw_dA * np.exp(-sig_t * -c[1] / cw)),
+                 (w_s, 5.0 * T_s * ca_s / cw_s * np.exp(-sig_t * -c[1] / cw_s))]
     sel = np.asarray(jaxvcm._lights.selection_pdf(scene))
     pixels, values = [], []
     for k, (w, E) in enumerate(forms):
         pix, W = _pixel_of(scene, w)
-        R = jaxvcm.fresnel_unpolarised(abs(w[1]), 1.33)
         pixels.append(pix)
-        values.append(W * R * E / sel[k])
+        values.append(W * E / sel[k])
     assert pixels[0] != pixels[1]
     others = np.ones(N * N, bool)
     others[pixels] = False
@@ -106,7 +151,7 @@ def test_flat_water_glint_closed_form():
         got = imgs[:, pix, :]
         hit = got[:, 0] > 0
         assert 0 < hit.sum() < len(hit)  # the light was picked by some samples, not all
-        np.testing.assert_allclose(got[hit], v, rtol=2e-4)
+        np.testing.assert_allclose(got[hit], np.broadcast_to(v, got[hit].shape), rtol=2e-4)
 
 
 # ---------------------------------------------------------------- MIS weights
