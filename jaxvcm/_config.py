@@ -158,6 +158,11 @@ class RenderConfig:
                  MIS against the emitter hits that make the same paths
                  (docs/design/manifold.md). For the algorithms with emitter hits and
                  MIS weights: pt, bdpt, bpm, vcm.
+    manifold_nee: add manifold next-event estimation: from every camera vertex under the
+                 water, a point on a light above it and the surface point that refracts
+                 its light there, found by Newton, one more technique of the explicit MIS
+                 sums (docs/design/manifold.md). For pt, bdpt, bpm and vcm with the
+                 explicit MIS form.
     tuning:      how the work is laid out (`Tuning`: trace rounds, chunks, capacities),
                  not what is estimated; set by the host driver, or with `tuned(...)`.
     """
@@ -172,6 +177,7 @@ class RenderConfig:
     alpha: float = 0.75
     mis_form: str = "explicit"
     glints: bool = False
+    manifold_nee: bool = False
     tuning: Tuning = Tuning()
 
     @property
@@ -214,6 +220,16 @@ class RenderConfig:
             raise ValueError(f"config.glints: the glint technique shares its paths with the "
                              f"emitter hits by MIS; {self.algorithm} has no weighted emitter "
                              f"hits (use pt, bdpt, bpm or vcm)")
+        if not isinstance(self.manifold_nee, bool):
+            raise ValueError(f"config.manifold_nee: must be true or false, "
+                             f"got {self.manifold_nee!r}")
+        if self.manifold_nee and not (self.techniques.camera_paths and self.techniques.weighted):
+            raise ValueError(f"config.manifold_nee: a technique of the MIS sums from camera "
+                             f"vertices; {self.algorithm} has no weighted camera techniques "
+                             f"(use pt, bdpt, bpm or vcm)")
+        if self.manifold_nee and self.mis_form != "explicit":
+            raise ValueError("config.manifold_nee: its weights are terms of the explicit "
+                             "sums; use mis_form 'explicit'")
         if not isinstance(self.tuning, Tuning):
             raise ValueError(f"config.tuning: must be a Tuning record (set it with "
                              f"RenderConfig.tuned), got {type(self.tuning).__name__}")

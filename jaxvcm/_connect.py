@@ -33,6 +33,7 @@ from . import _vec as vec
 from ._camera import camera_importance
 from ._config import RenderConfig
 from ._glints import emitter_share as glint_share
+from ._mnee import emitter_hit_factor as mnee_factor
 from ._mis import mis_form
 from ._path import both_dispersed, log_n_light_tracing, reverse_pdf
 from ._queue import masked_map
@@ -168,11 +169,13 @@ def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
 
 # ---------------------------------------------------------------- the techniques
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
-                 etas, parts, pixel=None):
+                 etas, parts, pixel=None, mnee=False):
     """s = 0: z_j on an emitter or at infinity (sky), j = 1..D: {(0, j + 1): [N, C]}.
     `pixel` [N] (the paths' pixels): the glint technique runs, and the emitter hits of its
-    paths take their share of them (`_glints.emitter_share`)."""
-    val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas, pixel)
+    paths take their share of them (`_glints.emitter_share`). `mnee`: manifold next-event
+    estimation runs; an emitter hit through the water surface counts it in its sums
+    (`_mnee.emitter_hit_factor`)."""
+    val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas, pixel, mnee)
     return {(0, j + 1): val[j - 1] for j in range(1, cfg.max_depth + 1)}
 
 
@@ -272,7 +275,7 @@ def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: Pat
 
 
 def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
-                         verts: subpath.Vertex, parts, etas, pixel=None):
+                         verts: subpath.Vertex, parts, etas, pixel=None, mnee=False):
     """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
     only the live vertices that see emission (a light, or the sky after an escape) evaluate
     the join; in a pool few camera vertices do."""
@@ -295,9 +298,18 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
         lid = jnp.where(esc, sky, jnp.maximum(r.light, 0))
         A_s, A_s1, _, _ = emitter_hit_join_pdfs(scene, z, zp, lid, esc)
         one = jnp.ones((), dt)
-        w = sg(mis_form(cfg).join_weight(cfg, jnp.asarray(0, jnp.int32), i + 2, L0, parts[1],
-                                         sg(A_s), sg(A_s1), one, one, jnp.zeros((), bool),
-                                         esc, sg(log_n), lanes=((0,), (n,))))
+        s0 = jnp.asarray(0, jnp.int32)
+        if mnee:  # z_{j-1} on the water surface: the manifold connection z_{j-2} - z_{j-1}
+            za = cam_at(jnp.maximum(i - 1, 0), n)
+            c2 = mnee_factor(scene, za, zp, z, lid, esc, i + 1, sg(A_s1))
+            mj = mis_form(cfg)
+            w = sg(mj.join(cfg, s0, i + 2, mj.entries(cfg, L0, s0, i + 2, (0,)),
+                           mj.entries(cfg, parts[1], i + 2, s0, (n,)), sg(A_s), sg(A_s1), one,
+                           one, jnp.zeros((), bool), esc, sg(log_n), c2=c2))
+        else:
+            w = sg(mis_form(cfg).join_weight(cfg, s0, i + 2, L0, parts[1], sg(A_s), sg(A_s1),
+                                             one, one, jnp.zeros((), bool), esc, sg(log_n),
+                                             lanes=((0,), (n,))))
         if pixel is not None:  # the glints' paths: the emitter hit's share of them
             z0, z1 = cam_at(0, n), cam_at(1, n)
             w = w * glint_share(scene, cfg, z0.p, z1, z, lid, esc, i + 1, pixel[n])

@@ -72,10 +72,11 @@ class _Prev(NamedTuple):  # z_{j-1}, as the walk state knows it
 def enabled(cfg: RenderConfig) -> bool:
     """The pass can evaluate its techniques in the trace: PT's techniques only (camera
     subpaths, emitter hits and / or next-event estimation), the explicit MIS form, no
-    glints (their emitter hits' share is evaluated at the emitter-hit stage)."""
+    glints and no manifold next-event estimation (the emitter hits' share of their paths
+    is evaluated at the emitter-hit stage)."""
     tech = cfg.techniques
     return (tech.camera_paths and not tech.light_paths and tech.merging is None
-            and cfg.mis_form == "explicit" and not cfg.glints)
+            and cfg.mis_form == "explicit" and not cfg.glints and not cfg.manifold_nee)
 
 
 def start(s0: subpath.WalkState) -> subpath.WalkState:

@@ -33,6 +33,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from . import _camera as camera
 from . import _connect as connect
 from . import _glints as glints
+from . import _mnee as mnee
 from . import _inline as inline
 from . import _lights as lights
 from . import _merge as merge
@@ -288,8 +289,12 @@ def camera_paths_inline(scene: Scene, cfg: RenderConfig, st: PassState) -> PassS
 def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     _, N, _, dt = _dims(scene, cfg)
     delta_light = None if st.emission is None else st.emission.delta
+    light_mnee = None
+    if _mnee_on(scene, cfg) and st.lends is not None:
+        light_mnee = mnee.light_factors(scene, cfg, st.lends, st.emission)
     parts = mis_form(cfg).subpaths(cfg, st.lends, st.cends, delta_light,
-                                   path.log_n_light_tracing(cfg, N, dt), st.mis_etas)
+                                   path.log_n_light_tracing(cfg, N, dt), st.mis_etas,
+                                   light_mnee=light_mnee)
     return dataclasses.replace(st, parts=parts)
 
 
@@ -297,7 +302,21 @@ def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     pixel = _path_pixels(scene, cfg, st) if _glints_on(scene, cfg) else None
     return _add(st, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts,
-                                         pixel))
+                                         pixel, _mnee_on(scene, cfg)))
+
+
+# ---- manifold next-event estimation: from camera vertices under the water through the
+#      water surface to a light (`_mnee`)
+def _mnee_on(scene: Scene, cfg: RenderConfig) -> bool:
+    return cfg.manifold_nee and mnee.applies(scene)
+
+
+def manifold_next_event(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    if not mnee.applies(scene):  # no water, a dispersive one, or no light with a point
+        return st
+    key = jax.random.fold_in(jax.random.fold_in(st.key, mnee.STREAM), st.chunk)
+    val = mnee.manifold_nee(scene, cfg, st.cends, st.parts, st.mis_etas, key)
+    return _add(st, {Technique("manifold", s, t): v for (s, t), v in val.items()})
 
 
 # ---- glints: a light point seen in the water surface, per camera path (`_glints`)
@@ -428,6 +447,8 @@ def pass_stages(cfg: RenderConfig, image_only: bool = False) -> list[tuple[str, 
         stages.append(("glints", glint_connections))
     if cam and D >= 2 and tech.nee:
         stages.append(("next-event estimation", next_event))
+    if cam and D >= 3 and cfg.manifold_nee:
+        stages.append(("manifold next-event estimation", manifold_next_event))
     if light and tech.merging == "first":
         stages.append(("merging", photon_gather))
     if light and tech.light_tracing:

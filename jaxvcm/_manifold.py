@@ -733,6 +733,26 @@ def solve_near(water: Water, a: Vec3, b: Vec3, x, z, *, refract,
     return Near(Vec3(xp, h, zp), E.ok & ok & (res <= tol), res)
 
 
+def flat_seed(water: Water, a: Vec3, b: Vec3):
+    """(x, z): the refraction point of a -> b on the water's mean level (flat water; a and b
+    on opposite sides), the natural seed of `solve_near` for a connection whose root lies
+    near it (the waves' slopes move it by a fraction of the endpoints' depths). Points on
+    the plane itself are moved a hair off it; the seed is clamped into the footprint."""
+    sg = jax.lax.stop_gradient
+    w, a, b = sg(water), sg(a), sg(b)
+    a_below = below(w, a)
+    Da = jnp.abs(a.y - w.level)
+    Db = jnp.abs(b.y - w.level)
+    eta_a = jnp.where(a_below, w.ior, 1.0)
+    eta_b = jnp.where(a_below, 1.0, w.ior)
+    dx, dz = b.x - a.x, b.z - a.z
+    P = jnp.sqrt(dx * dx + dz * dz)
+    p1, _ = _flat_point(P, Da, Db, eta_a, eta_b)
+    f = jnp.where(P > 0, p1 / jnp.where(P > 0, P, 1.0), 0.0)
+    fp = w.footprint
+    return jnp.clip(a.x + f * dx, fp[0], fp[1]), jnp.clip(a.z + f * dz, fp[2], fp[3])
+
+
 # ---------------------------------------------------------------- the specular chain's Jacobian
 def _root_fn(water: Water, a: Vec3, s: Vec3, b: Vec3, refract: bool, b_is_direction: bool):
     """The root near s (a point) as a differentiable function of the endpoints (a, b)."""

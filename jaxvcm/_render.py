@@ -324,10 +324,14 @@ def technique_layer(label: Technique) -> str:
     "k3_s1_t3" the connection of s light and t camera vertices (k = s + t - 1; s = 0 emitter
     hits, s = 1 next-event estimation, t = 1 light tracing), "k3_merge_s2_t3" photon
     y_{s-1} merged at z_{t-1} (k = s + t - 2), "merge_t3" every merge at z_{t-1} (s = 0),
-    "gather" ppm's photon gather, "k2_glint" the glints (pinhole -> water surface -> light)."""
+    "gather" ppm's photon gather, "k2_glint" the glints (pinhole -> water surface -> light),
+    "k4_manifold_t3" manifold next-event estimation from z_{t-1} through the water surface
+    (k = t + 1)."""
     kind, s, t = label
     if kind == "glint":
         return "k2_glint"
+    if kind == "manifold":
+        return f"k{s + t - 1}_manifold_t{t}"
     if kind == "connection":
         return f"k{s + t - 1}_s{s}_t{t}"
     if kind == "merge":

@@ -48,9 +48,11 @@ class AbstractMIS(eqx.Module):
 
     # ---- per subpath
     @abc.abstractmethod
-    def subpaths(self, cfg: RenderConfig, lends, cends, delta_light, log_n_lt, etas):
+    def subpaths(self, cfg: RenderConfig, lends, cends, delta_light, log_n_lt, etas,
+                 light_mnee=None):
         """(light, camera) per-subpath MIS state from the traced subpaths (`PathEnds`, or
-        None for a side the algorithm does not trace)."""
+        None for a side the algorithm does not trace); `light_mnee`: (ok [N], lm [N]) of the
+        light subpaths' manifold connections at y_2 (`_mnee.light_factors`), or None."""
 
     @abc.abstractmethod
     def empty_light(self, cfg: RenderConfig, dtype, etas):

@@ -49,9 +49,12 @@ def _lae(*xs):
     return out
 
 
-def _log_pos(x, zero):
+def log_pos(x, zero):
     """log x, with `zero` where x <= 0."""
     return jnp.where(x > 0, jnp.log(jnp.where(x > 0, x, 1.0)), zero)
+
+
+_log_pos = log_pos
 
 
 def _rr(index, q, rr_depth):
@@ -80,7 +83,12 @@ class Partials(NamedTuple):
     vc:    [M] the connection technique that starts at the vertex is enabled and
            connectable (light x_i: technique i; camera z_c: technique k - c + 1);
     vm:    [M] merging at the vertex is enabled (non-delta, not the subpath's first);
-    q, delta, leta: [M] local roulette survival, delta flag, log(kernel N) at the vertex.
+    q, delta, leta: [M] local roulette survival, delta flag, log(kernel N) at the vertex;
+    mn, lm: [M] (light subpaths with manifold next-event estimation, else None) the
+           connection technique that starts at the vertex is a manifold connection
+           through the delta vertex before it (`_mnee`: y_2 after the water surface y_1),
+           and the log of its pdf relative to that of the connection the delta convention
+           would give it, log(a_1^eff / a_1) (added to its term; 0 elsewhere).
     """
 
     table: Array
@@ -91,6 +99,8 @@ class Partials(NamedTuple):
     q: Array
     delta: Array
     leta: Array
+    mn: Array | None = None
+    lm: Array | None = None
 
 
 def _tables(cfg, M, u_q, d_q, u_1, d_1, bad):
@@ -141,7 +151,7 @@ def _tables(cfg, M, u_q, d_q, u_1, d_1, bad):
 
 
 def subpath(cfg: RenderConfig, A, B, q, delta, medium, camera_side, delta_light=False,
-            log_n_lt=0.0, etas=(0.0, 0.0)) -> Partials:
+            log_n_lt=0.0, etas=(0.0, 0.0), mn=None, lm=None) -> Partials:
     """Partials of one subpath (A, B, q, delta, medium [M, *lanes]: vertices first, any
     trailing lane axes; camera_side, delta_light broadcast against the lanes): a light subpath
     y_0..y_{M-1} (`camera_side` False) or a camera subpath z_0..z_{M-1} (True; z_0 the
@@ -151,7 +161,8 @@ def subpath(cfg: RenderConfig, A, B, q, delta, medium, camera_side, delta_light=
 
     The local pdf (light a_i, camera b_c) carries the subpath's own roulette (index from
     its start); the other one (light b_i, camera a_i) the roulette of the other direction,
-    q of the next vertex along the subpath, with (`_q`) or without (`_1`) it."""
+    q of the next vertex along the subpath, with (`_q`) or without (`_1`) it. `mn`, `lm`
+    ([M, *lanes] or None): manifold connections (`Partials`; False / 0 on camera lanes)."""
     tech = cfg.techniques
     beta = 2.0 if cfg.mis == "power" else 1.0
     M = A.shape[0]
@@ -177,22 +188,26 @@ def subpath(cfg: RenderConfig, A, B, q, delta, medium, camera_side, delta_light=
                           jnp.where(i == 1, tech.light_tracing & ~delta,
                                     tech.connections & ~delta & ~d_prev))
     vc = jnp.where(camera_side, vc_camera, vc_light)
+    if mn is not None:  # a manifold connection starts where the delta convention has none
+        vc = vc | mn
     ln = jnp.where(camera_side & (i == 1), log_n_lt, 0.0).astype(dt)
     vm = jnp.asarray(tech.merging == "all") & (i >= 1) & ~delta
 
     def terms(lo):  # u: the techniques that start at the vertex; d: the step to the next
         d = beta * (lo - lp)
-        u = jnp.logaddexp(jnp.where(vc, d + beta * ln, NEG), jnp.where(vm, beta * (lo + leta), NEG))
+        c = d + beta * ln if lm is None else d + beta * (ln + lm)
+        u = jnp.logaddexp(jnp.where(vc, c, NEG), jnp.where(vm, beta * (lo + leta), NEG))
         return u, d
 
     table, zero = _tables(cfg, M, *terms(_log_pos(other * q_next, NEG)),
                           *terms(_log_pos(other, NEG)), ~(local > 0))
-    return Partials(table, lp, zero, vc, vm, q, delta, leta)
+    return Partials(table, lp, zero, vc, vm, q, delta, leta, mn, lm)
 
 
-def light(cfg: RenderConfig, A, B, q, delta, medium, delta_light, etas=(0.0, 0.0)) -> Partials:
+def light(cfg: RenderConfig, A, B, q, delta, medium, delta_light, etas=(0.0, 0.0), mn=None,
+          lm=None) -> Partials:
     """Partials of a light subpath y_0..y_{M-1} (one lane)."""
-    return subpath(cfg, A, B, q, delta, medium, False, delta_light, 0.0, etas)
+    return subpath(cfg, A, B, q, delta, medium, False, delta_light, 0.0, etas, mn, lm)
 
 
 def camera(cfg: RenderConfig, A, B, q, delta, medium, log_n_lt, etas=(0.0, 0.0)) -> Partials:
@@ -219,6 +234,13 @@ class Entries(NamedTuple):
     leta2: Array
     table: Array
     zero: Array
+    # manifold connections (None without them): the log factor of the connection that
+    # starts at each of the two vertices, and whether the connection technique s that
+    # starts at x_s (a merge's photon) is a manifold one, with its factor
+    lm1: Array | None = None
+    lm2: Array | None = None
+    mn0: Array | None = None
+    lm0: Array | None = None
 
 
 def entries(cfg: RenderConfig, P: Partials, n, other, index=()) -> Entries:
@@ -239,10 +261,14 @@ def entries(cfg: RenderConfig, P: Partials, n, other, index=()) -> Entries:
     ok1, g1 = row(n - 1)
     ok2, g2 = row(n - 2)
     v = xp.clip(other, V[0], V[0] + V[1] - 1) - V[0]
+    mn = {}
+    if P.mn is not None:
+        ok0, g0 = row(n)
+        mn = dict(lm1=g1(P.lm), lm2=g2(P.lm), mn0=g0(P.mn) & ok0, lm0=g0(P.lm))
     return Entries(ok1, g1(P.lp), g1(P.vc) & ok1, g1(P.vm) & ok1, g1(P.q), g1(P.delta),
                    g1(P.leta), ok2, g2(P.lp), g2(P.vc) & ok2, g2(P.vm) & ok2, g2(P.delta),
                    g2(P.leta), P.table[(v, xp.clip(n - 2, 0, M)) + index],
-                   P.zero[(xp.clip(n, 0, M),) + index])
+                   P.zero[(xp.clip(n, 0, M),) + index], **mn)
 
 
 def start_entries(cfg: RenderConfig, A0, delta_light, leta0=0.0) -> Entries:
@@ -279,9 +305,16 @@ def join_weight(cfg: RenderConfig, s, t, L: Partials, C: Partials, A_s, A_s1, B_
 
 
 def join(cfg: RenderConfig, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s2,
-         delta_light, infinite_light, log_n_lt, merge=False):
+         delta_light, infinite_light, log_n_lt, merge=False, lm_own=None, c2=None):
     """`join_weight` from the entries of both sides: elementwise, any batch shape (s, t
-    broadcast against the pdfs)."""
+    broadcast against the pdfs).
+
+    Manifold connections (`_mnee`; technique 2 through the delta vertex x_1 on the water
+    surface, whose pdf is the delta convention's times exp(lm)): `lm_own` weights that
+    technique itself (s = 2: its own term is beta lm instead of the connection's 0);
+    `c2` = (ok, lm): an emitter hit (s = 0) whose z_{t-2} is such a surface vertex adds the
+    manifold connection z_{t-2} - z_{t-3} to its camera-side sum; the light side's
+    manifold connections come in the entries (`Entries.lm1`, ...)."""
     tech = cfg.techniques
     beta = 2.0 if cfg.mis == "power" else 1.0
     R = cfg.rr_depth
@@ -295,8 +328,10 @@ def join(cfg: RenderConfig, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s
     lb2 = _log_pos(B_s2 * _rr(t, q_y, R), NEG)
     d1 = jnp.where(Le.ok1, beta * (lb1 - Le.lp1), 0.0)
     d2 = jnp.where(Le.ok2, beta * (lb2 - Le.lp2), 0.0)
-    u1 = jnp.logaddexp(jnp.where(Le.vc1, d1, NEG), jnp.where(Le.vm1, beta * (lb1 + Le.leta1), NEG))
-    u2 = jnp.logaddexp(jnp.where(Le.vc2, d2, NEG), jnp.where(Le.vm2, beta * (lb2 + Le.leta2), NEG))
+    c1 = d1 if Le.lm1 is None else d1 + beta * Le.lm1
+    c2_ = d2 if Le.lm2 is None else d2 + beta * Le.lm2
+    u1 = jnp.logaddexp(jnp.where(Le.vc1, c1, NEG), jnp.where(Le.vm1, beta * (lb1 + Le.leta1), NEG))
+    u2 = jnp.logaddexp(jnp.where(Le.vc2, c2_, NEG), jnp.where(Le.vm2, beta * (lb2 + Le.leta2), NEG))
     SL = _lae(u1, d1 + u2, d1 + d2 + Le.table)
 
     # ---- camera side: a_s, a_{s+1} re-evaluated, roulette counted from the light ----
@@ -317,6 +352,9 @@ def join(cfg: RenderConfig, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s
                         jnp.where(vm_s, beta * (la_s + Ce.leta1), NEG))
     uc2 = jnp.logaddexp(jnp.where(Ce.vc2, e2 + beta * ln_s2, NEG),
                         jnp.where(Ce.vm2, beta * (la_s1 + Ce.leta2), NEG))
+    if c2 is not None:  # the manifold connection z_{t-2} - z_{t-3} of an emitter hit
+        ok_m, lm_m = c2
+        uc2 = jnp.logaddexp(uc2, jnp.where(ok_m, e2 + beta * (ln_s2 + lm_m), NEG))
     SC = _lae(uc1, e1 + uc2, e1 + e2 + Ce.table)
 
     # ---- the connection technique s itself (x_{s-1} - x_s) ----
@@ -329,6 +367,12 @@ def join(cfg: RenderConfig, s, t, Le: Entries, Ce: Entries, A_s, A_s1, B_s1, B_s
     conn = conn & positive
     ln_s = jnp.where(t == 1, log_n_lt, 0.0)  # n_s = N for light tracing
     own_conn = jnp.where(conn, beta * ln_s, NEG)
+    if lm_own is not None:  # the manifold connection itself (s = 2, t >= 2)
+        conn = positive
+        own_conn = jnp.where(conn, beta * lm_own, NEG)
+    if merge and Le.mn0 is not None:  # the connection technique s is a manifold one
+        own_conn = jnp.where(conn, own_conn,
+                             jnp.where(Le.mn0 & positive & ~Ce.delta1, beta * Le.lm0, NEG))
     if merge:
         own = beta * (la_s + Ce.leta1)
         own_ok = vm_s & positive & (t >= 2) & jnp.isfinite(la_s)
@@ -379,20 +423,26 @@ class ExplicitMIS(AbstractMIS):
     """The explicit sums of `mis_weight` split at the join: per-subpath partial sums
     (`subpath`, O(D) per subpath) and O(1) per technique (`join`)."""
 
-    def subpaths(self, cfg, lends, cends, delta_light, log_n_lt, etas):
+    def subpaths(self, cfg, lends, cends, delta_light, log_n_lt, etas, light_mnee=None):
+        mn = lm = None
+        if light_mnee is not None and lends is not None:  # (ok [N], lm [N]) of y_2
+            Ml, N = lends.A.shape
+            at2 = (np.arange(Ml) == 2)[:, None]
+            mn = jnp.where(at2, light_mnee[0][None], False)
+            lm = jnp.where(at2, _sg(light_mnee[1])[None], 0.0).astype(lends.A.dtype)
         if lends is not None and cends is not None:
-            return self._both(cfg, lends, cends, delta_light, log_n_lt, etas)
+            return self._both(cfg, lends, cends, delta_light, log_n_lt, etas, mn, lm)
         L = C = None
         if cends is not None:
             C = camera(cfg, _sg(cends.A), _sg(cends.B), _sg(cends.q), cends.delta,
                        cends.medium, _sg(log_n_lt), _sg(etas))
         if lends is not None:
             L = light(cfg, _sg(lends.A), _sg(lends.B), _sg(lends.q), lends.delta, lends.medium,
-                      delta_light, _sg(etas))
+                      delta_light, _sg(etas), mn, lm)
         return L, C
 
     @staticmethod
-    def _both(cfg, lig, cam, delta_light, log_n_lt, etas):
+    def _both(cfg, lig, cam, delta_light, log_n_lt, etas, mn=None, lm=None):
         """(light, camera) partials in one call over both subpaths' lanes (one copy of the
         builder in the compiled program): the light subpaths [M_l, N] are padded to the
         camera subpaths' length [M_c, N] (the padding is never read)."""
@@ -408,8 +458,12 @@ class ExplicitMIS(AbstractMIS):
             cat(lig.delta, cam.delta, False), cat(lig.medium, cam.medium, False),
             jnp.arange(2 * N) >= N,
             jnp.concatenate([jnp.broadcast_to(delta_light, (N,)), jnp.zeros((N,), bool)]),
-            _sg(log_n_lt), _sg(etas))
-        return (jax.tree.map(lambda a: a[..., :N], P), jax.tree.map(lambda a: a[..., N:], P))
+            _sg(log_n_lt), _sg(etas),
+            None if mn is None else cat(mn, jnp.zeros_like(cam.delta), False),
+            None if lm is None else cat(lm, jnp.zeros_like(cam.A), 0))
+        L = jax.tree.map(lambda a: a[..., :N], P)
+        C = jax.tree.map(lambda a: a[..., N:], P)
+        return L, C._replace(mn=None, lm=None)
 
     def empty_light(self, cfg, dtype, etas):
         one = jnp.ones((1, 1), dtype)

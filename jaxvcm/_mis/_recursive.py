@@ -569,7 +569,10 @@ class RecursiveMIS(AbstractMIS):
         return start_carry(cfg, _sg(emission.pdf_pos),
                            cfg.techniques.emitter_hits & ~emission.delta, etas[0], dtype)
 
-    def subpaths(self, cfg, lends, cends, delta_light, log_n_lt, etas):
+    def subpaths(self, cfg, lends, cends, delta_light, log_n_lt, etas, light_mnee=None):
+        if light_mnee is not None:  # refused by RenderConfig (manifold_nee needs "explicit")
+            raise ValueError("config.manifold_nee: needs mis_form 'explicit'")
+
         def one(e):
             return None if e is None else carried(cfg, _sg(e.mis.rec), e.mis.zero, _sg(e.q),
                                                   e.delta, e.medium, _sg(etas))
