@@ -244,12 +244,21 @@ def intersect_water(w: Water, o: Vec3, d: Vec3, tmin, tmax, steps: int = 16, ref
     c = (a, b, fa, fb, jnp.zeros((), jnp.int32), m, f(m))
     if refine > 0:
         c = keep(*jax.lax.fori_loop(0, refine - 1, illinois, c))
-    a, b, fa, fb, _ = c[:5]
+    # the bracket carries no derivatives (its secant steps divide by f's differences,
+    # which vanish as it converges: their derivatives overflow, and a masked-out lane's
+    # inf times 0 is a NaN in the gradient); the last Newton step gives the crossing's
+    # derivatives by the implicit function theorem, dt = -df / (df/dt)
+    # derivatives by the implicit function theorem, dt = -df / (df/dt). A miss takes a
+    # finite stand-in (t = 0, df/dt = 1): its value is discarded below, and nothing
+    # non-finite may reach the gradients through the discarded branch.
+    a, b, fa, fb, _ = jax.lax.stop_gradient(c[:5])
+    a, b = jnp.where(found, a, 0.0), jnp.where(found, b, 0.0)
     t = jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b)
     h, hx, hz = water_height(w, o.x + t * d.x, o.z + t * d.z)
     ft = o.y + t * d.y - h
     dft = d.y - (hx * d.x + hz * d.z)
-    t = jnp.clip(t - ft / jnp.where(dft == 0, 1e-30, dft), a, b)
+    dft = jnp.where(found, jnp.where(dft == 0, 1e-30, dft), 1.0)
+    t = jnp.clip(t - ft / dft, a, b)
     ok = found & (t > tmin) & (t < tmax)
     return jnp.where(ok, t, INF)
 

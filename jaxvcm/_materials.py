@@ -45,7 +45,9 @@ def fresnel_dielectric(cos_i, eta):
     cos_i = jnp.clip(jnp.abs(cos_i), 0.0, 1.0)
     sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
     tir = sin2_t >= 1.0
-    cos_t = jnp.sqrt(jnp.maximum(0.0, 1.0 - sin2_t))
+    # (under total internal reflection cos_t = 0 without a square root at 0, whose
+    # infinite derivative would make a NaN of the gradient through the discarded branch)
+    cos_t = jnp.where(tir, 0.0, jnp.sqrt(jnp.where(tir, 1.0, 1.0 - sin2_t)))
     r_par = (eta * cos_i - cos_t) / jnp.maximum(eta * cos_i + cos_t, 1e-30)
     r_perp = (cos_i - eta * cos_t) / jnp.maximum(cos_i + eta * cos_t, 1e-30)
     R = 0.5 * (r_par * r_par + r_perp * r_perp)
@@ -143,7 +145,8 @@ def sample_bsdf(kind, albedo, ior, wo: Vec3, n: Vec3, u1, u2, u_lobe, radiance=T
         r = vec.reflect(wo, ns)
         n_s = jax.lax.stop_gradient(exponent)  # the sampled direction: a sampling decision
         cos_a = jnp.power(u1, 1.0 / (n_s + 1.0))
-        sin_a = jnp.sqrt(jnp.maximum(0.0, 1.0 - cos_a * cos_a))
+        s2 = 1.0 - cos_a * cos_a
+        sin_a = jnp.where(s2 > 0, jnp.sqrt(jnp.where(s2 > 0, s2, 1.0)), 0.0)
         phi = 2.0 * jnp.pi * u2
         lobe = Vec3(sin_a * jnp.cos(phi), sin_a * jnp.sin(phi), cos_a)
         wi_gl = vec.where(u_lobe < p_d, wi_d, vec.to_world(lobe, r))

@@ -246,11 +246,17 @@ def manifold_nee(scene: Scene, cfg: RenderConfig, cam: PathEnds, parts, etas, ke
 
     def item(i, n):
         j = j_of[i]
-        z, zp = cam_at(j, n), cam_at(j - 1, n)
+        ok = found[i, n]
+        # a round's padding items (not found) run on a safe stand-in (a vertex under the
+        # water with a light straight above it), so that no NaN of a garbage vertex enters
+        # the gradients through the masked-out branch
+        z = _safe_vertex(scene, ok, cam_at(j, n))
+        zp = cam_at(j - 1, n)
         e = emission(i, n)
-        y = e.p
+        y = vec.where(ok, e.p, Vec3(z.p.x, water.level + 1.0, z.p.z))
+        x0, z0 = jnp.where(ok, xs[i, n], z.p.x), jnp.where(ok, zs_[i, n], z.p.z)
         # the root again from itself: the polish step and its implicit-function derivatives
-        s = manifold.solve_near(water, z.p, y, xs[i, n], zs_[i, n], refract=True, iters=0).s
+        s = manifold.solve_near(water, z.p, y, x0, z0, refract=True, iters=0).s
         # ---- visibility: a -> s (under the water), s -> y_0 (above it) ----
         w_a, d_as, oa, wd, tmax = _segment(z.p, z.n, z.medium, s)
         vis = geometry.unoccluded(scene, oa, wd, tmax, cfg.march_steps)
@@ -284,11 +290,23 @@ def manifold_nee(scene: Scene, cfg: RenderConfig, cam: PathEnds, parts, etas, ke
         lm = lm_eff - jnp.log(jnp.maximum(sg(a1), 1e-30))
         w = sg(mj.join(cfg, jnp.asarray(2, jnp.int32), t, Le_, Ce_, sg(A_s), sg(A_s1), sg(B_s1),
                        sg(B_s2), dl, jnp.zeros((), bool), sg(log_n), lm_own=lm))
-        good = vis & jnp.isfinite(lm)
+        good = ok & vis & jnp.isfinite(lm)
         return jnp.where(good, contrib * w, 0.0)
 
     val = masked_map(item, found, (ii, nn), 0.0, 2 * J)
     return {(2, int(j) + 1): val[i] for i, j in enumerate(js)}
+
+
+def _safe_vertex(scene: Scene, ok, z):
+    """z where ok, else a stand-in camera vertex half a metre under the middle of the
+    water's footprint (a diffuse floor-like vertex facing up): finite everywhere."""
+    water = scene.water
+    fp = water.footprint
+    dt = z.p.x.dtype
+    c = Vec3(0.5 * (fp[0] + fp[1]), water.level - 0.5, 0.5 * (fp[2] + fp[3]))
+    up = Vec3(jnp.zeros((), dt), jnp.ones((), dt), jnp.zeros((), dt))
+    sub = z._replace(p=c, n=up, wo=up, medium=jnp.zeros((), bool), beta=jnp.zeros_like(z.beta))
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), z, sub)
 
 
 def _segment(p: Vec3, n: Vec3, medium, s: Vec3):

@@ -153,3 +153,46 @@ def test_pt_alone_leaves_the_point_light_dark(setup):
     point = _closed_form(scene, ("point",)).sum((0, 1)) / ref.sum((0, 1))
     assert np.all(point > 0.2)  # the point light is a fair part of the closed form
     assert np.all(ratio < 1.0 - 0.5 * point), (ratio, point)
+
+
+def test_gradients_through_the_root():
+    # the point light alone over one small wave, PT with the technique, max_depth 3: every
+    # pixel is pinhole -> floor -> the root -> light, a smooth function of the wave's
+    # amplitude (the root by the implicit function theorem, G_perp by its derivative), of
+    # sigma_a (both segments in the water) and linear in the intensity; reverse mode
+    # against central differences of the same fixed-key pass
+    import equinox as eqx
+
+    doc = _scene_doc()
+    doc["lights"] = doc["lights"][:1]
+    doc["water"]["waves"] = [[0.02, 5.0, 3.0, 0.4]]  # focal length ~ 6 m: a 17 % modulation
+    scene = jaxvcm.scene_from_dict(doc, "flat_pool_point_wave")
+    cfg = RenderConfig(algorithm="pt", max_depth=3, rr_depth=100, manifold_nee=True)
+    key = jax.random.key(3)
+    # a ramp across the image: the wave moves light between pixels (the image's sum barely
+    # changes), the ramp sees the move
+    wgt = jnp.asarray(np.linspace(-1.0, 1.0, N)[None, :, None] * np.ones((N, 1, 1)), jnp.float32)
+
+    def total(amp, sig, inten):
+        s = eqx.tree_at(lambda t: t.water.amp, scene, amp)
+        s = eqx.tree_at(lambda t: t.water.sigma_a, s, sig)
+        s = eqx.tree_at(lambda t: t.lights.radiance, s, inten)
+        return (jaxvcm.render_pass(s, key, cfg)[0] * wgt).sum()
+
+    p0 = (scene.water.amp, scene.water.sigma_a, scene.lights.radiance)
+    f = jax.jit(total)
+    g = jax.jit(jax.grad(total, argnums=(0, 1, 2)))(*p0)
+    v0 = float(f(*p0))
+    scale = float(jax.jit(lambda: jaxvcm.render_pass(scene, key, cfg)[0].sum())())
+    assert scale > 0
+    # the amplitude (h = 1 mm of 20 mm)
+    h = 1e-3
+    fd = (float(f(p0[0] + h, *p0[1:])) - float(f(p0[0] - h, *p0[1:]))) / (2 * h)
+    assert abs(fd) * 0.02 > 0.02 * scale  # the amplitude matters
+    np.testing.assert_allclose(float(g[0][0]), fd, rtol=0.03)
+    # sigma_a of the green channel
+    e = jnp.array([0.0, 0.02, 0.0], jnp.float32)
+    fd = (float(f(p0[0], p0[1] + e, p0[2])) - float(f(p0[0], p0[1] - e, p0[2]))) / 0.04
+    np.testing.assert_allclose(float(g[1][1]), fd, rtol=0.02)
+    # linear in the intensity: sum_c I_c d total / d I_c = total
+    np.testing.assert_allclose(float(jnp.sum(g[2] * p0[2])), v0, rtol=1e-4)
