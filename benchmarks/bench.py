@@ -84,7 +84,8 @@ PROFILE_TAG = "stage-profile"
 # row order of the profile tables (`jaxvcm.profile_stages` names; others go before the sums)
 PROFILE_STAGES = ("setup", "camera rays", "light emission", "subpaths",
                   "subpaths, emitter hits, next-event estimation", "mis partials",
-                  "emitter hits", "glints", "next-event estimation", "light tracing",
+                  "emitter hits", "glints", "next-event estimation",
+                  "manifold next-event estimation", "light tracing",
                   "connections",
                   "merging", "film")
 _TAG_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
@@ -95,13 +96,16 @@ _SECTION_RE = re.compile(
 
 # ----------------------------------------------------------------------------- arguments
 def render_config(name: str, **kw) -> jaxvcm.RenderConfig:
-    """The configuration of an algorithm name of the bench: an algorithm, or one with
-    "+glints" (the glint technique on: `RenderConfig.glints`)."""
-    alg, plus, extra = name.partition("+")
-    if plus and extra != "glints":
-        raise _Usage(f"unknown algorithm {name!r}: the only suffix is '+glints'")
+    """The configuration of an algorithm name of the bench: an algorithm, with suffixes
+    "+glints" (the glint technique: `RenderConfig.glints`) and / or "+mnee" (manifold
+    next-event estimation: `RenderConfig.manifold_nee`), e.g. "vcm+glints+mnee"."""
+    alg, *extra = name.split("+")
+    bad = [e for e in extra if e not in ("glints", "mnee")]
+    if bad or len(set(extra)) != len(extra):
+        raise _Usage(f"unknown algorithm {name!r}: the suffixes are '+glints' and '+mnee'")
     try:
-        return jaxvcm.RenderConfig(algorithm=alg, glints=bool(plus), **kw)
+        return jaxvcm.RenderConfig(algorithm=alg, glints="glints" in extra,
+                                   manifold_nee="mnee" in extra, **kw)
     except ValueError as e:
         raise _Usage(str(e)) from None
 
@@ -871,7 +875,7 @@ def _settings(argv):
     for alg in a.algorithms + [a.reference_algorithm]:
         if alg.partition("+")[0] not in jaxvcm.ALGORITHMS:
             raise _Usage(f"unknown algorithm {alg!r}; one of {', '.join(jaxvcm.ALGORITHMS)}"
-                         f" (with '+glints': the glint technique)")
+                         f" (with '+glints', '+mnee': the glint technique, manifold NEE)")
         render_config(alg)
     a.algorithms = list(dict.fromkeys(a.algorithms))
     root = repo_root()

@@ -85,8 +85,8 @@ def _weights(cfg, path, lm, dl, lm_light=None, eh_term=True):
     return out
 
 
-CASES = [("vcm", 3, "power"), ("vcm", 1, "balance"), ("vcm", 9, "power"),
-         ("bdpt", 2, "power"), ("bpm", 4, "balance"), ("pt", 2, "power")]
+CASES = [("vcm", 3, "power"), ("vcm", 1, "balance"), ("bdpt", 2, "power"),
+         ("bpm", 4, "balance"), ("pt", 2, "power")]
 
 
 @pytest.mark.parametrize("algorithm,rr_depth,mis", CASES,
@@ -96,10 +96,10 @@ def test_weights_of_every_technique_sum_to_one(algorithm, rr_depth, mis):
                        manifold_nee=True)
     rng = np.random.default_rng(rr_depth * 7 + len(algorithm))
     shares = []
-    for trial in range(6):
+    for trial in range(4):
         k = int(rng.integers(3, D + 1))
         path = _path(rng, k)
-        dl = bool(trial % 3 == 2)  # a point light: no emitter hit
+        dl = bool(trial == 3)  # a point light: no emitter hit
         lm = float(rng.uniform(-8, 8))
         w = _weights(cfg, path, lm, dl)
         assert all(0.0 <= v <= 1.0 + 1e-12 for v in w.values()), w

@@ -196,3 +196,14 @@ def test_gradients_through_the_root():
     np.testing.assert_allclose(float(g[1][1]), fd, rtol=0.02)
     # linear in the intensity: sum_c I_c d total / d I_c = total
     np.testing.assert_allclose(float(jnp.sum(g[2] * p0[2])), v0, rtol=1e-4)
+
+
+@pytest.mark.parametrize("kw", [dict(algorithm="ppm"), dict(algorithm="lt"),
+                                dict(algorithm="vcm", mis_form="recursive")],
+                         ids=["ppm", "lt", "recursive"])
+def test_configurations_without_the_technique_are_refused(kw):
+    # ppm takes no weights, lt has no camera vertices, and the recursive form has no term
+    # for a technique through a delta vertex: each refused in one line naming the field
+    with pytest.raises(ValueError, match=r"^config\.manifold_nee: [^\n]*$"):
+        RenderConfig(manifold_nee=True, **kw)
+    assert RenderConfig(algorithm="bpm", manifold_nee=True).record()["manifold_nee"] is True
