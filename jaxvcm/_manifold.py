@@ -733,15 +733,25 @@ def solve_near(water: Water, a: Vec3, b: Vec3, x, z, *, refract,
     return Near(Vec3(xp, h, zp), E.ok & ok & (res <= tol), res)
 
 
-def flat_seed(water: Water, a: Vec3, b: Vec3):
+def flat_seed(water: Water, a: Vec3, b: Vec3, b_is_direction: bool = False):
     """(x, z): the refraction point of a -> b on the water's mean level (flat water; a and b
-    on opposite sides), the natural seed of `solve_near` for a connection whose root lies
-    near it (the waves' slopes move it by a fraction of the endpoints' depths). Points on
-    the plane itself are moved a hair off it; the seed is clamped into the footprint."""
+    on opposite sides; with `b_is_direction`, b the direction the sun's light travels and a
+    under the water), the natural seed of `solve_near` for a connection whose root lies
+    near it (the waves' slopes move it by a fraction of the endpoints' depths). The seed is
+    clamped into the footprint."""
     sg = jax.lax.stop_gradient
     w, a, b = sg(water), sg(a), sg(b)
-    a_below = below(w, a)
+    fp = w.footprint
     Da = jnp.abs(a.y - w.level)
+    if b_is_direction:  # the refracted sun ray through a, traced back up to the level
+        d = vec.normalize(b)
+        sin_i = jnp.sqrt(jnp.maximum(d.x * d.x + d.z * d.z, 0.0))
+        sin_t = sin_i / w.ior
+        tan_t = sin_t / jnp.sqrt(jnp.maximum(1.0 - sin_t * sin_t, 1e-30))
+        h = jnp.where(sin_i > 0, 1.0 / jnp.where(sin_i > 0, sin_i, 1.0), 0.0)
+        x, z = a.x - d.x * h * Da * tan_t, a.z - d.z * h * Da * tan_t
+        return jnp.clip(x, fp[0], fp[1]), jnp.clip(z, fp[2], fp[3])
+    a_below = below(w, a)
     Db = jnp.abs(b.y - w.level)
     eta_a = jnp.where(a_below, w.ior, 1.0)
     eta_b = jnp.where(a_below, 1.0, w.ior)
@@ -749,7 +759,6 @@ def flat_seed(water: Water, a: Vec3, b: Vec3):
     P = jnp.sqrt(dx * dx + dz * dz)
     p1, _ = _flat_point(P, Da, Db, eta_a, eta_b)
     f = jnp.where(P > 0, p1 / jnp.where(P > 0, P, 1.0), 0.0)
-    fp = w.footprint
     return jnp.clip(a.x + f * dx, fp[0], fp[1]), jnp.clip(a.z + f * dz, fp[2], fp[3])
 
 

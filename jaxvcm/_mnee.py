@@ -66,7 +66,8 @@ from ._mis import mis_form
 from ._mis._explicit import Entries, log_pos
 from ._path import log_n_light_tracing, reverse_pdf
 from ._queue import masked_map
-from ._scene import DELTA_LIGHTS, LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, MAT_DIELECTRIC, Scene
+from ._scene import (DELTA_LIGHTS, LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN,
+                     MAT_DIELECTRIC, Scene)
 from ._subpath import PathEnds, rows, vertex_table
 from ._vec import Vec3
 
@@ -76,16 +77,25 @@ _POINT_KINDS = (LIGHT_RECT, LIGHT_SPHERE, LIGHT_POINT)
 
 
 def applies(scene: Scene) -> bool:
-    """The scene has a non-dispersive water and a light with a point end (area, point)."""
-    return (scene.water.enabled and not scene.materials.dispersive
-            and any(k in _POINT_KINDS for k in scene.lights.kind))
+    """The scene has a non-dispersive water and a light the technique reaches (area,
+    point, sun)."""
+    return scene.water.enabled and not scene.materials.dispersive and bool(_ends(scene))
 
 
-def _point_light(scene: Scene, light):
-    """Traced: light `light` has a point end (area or point light)."""
+def _ends(scene: Scene) -> list[bool]:
+    """The kinds of light end in this scene (static; `b_dir`): a point (area and point
+    lights: False), a direction (the sun: True)."""
+    kinds = scene.lights.kind
+    return ([False] if any(k in _POINT_KINDS for k in kinds) else []) + (
+        [True] if LIGHT_SUN in kinds else [])
+
+
+def _of_end(scene: Scene, light, b_dir: bool):
+    """Traced: light `light` has the end kind `b_dir`."""
+    want = (LIGHT_SUN,) if b_dir else _POINT_KINDS
     ok = jnp.zeros((), bool)
     for k, kind in enumerate(scene.lights.kind):
-        if kind in _POINT_KINDS:
+        if kind in want:
             ok = ok | (light == k)
     return ok
 
@@ -95,42 +105,49 @@ def _normal(water, s: Vec3) -> Vec3:
     return vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
 
 
-def chain(scene: Scene, a: Vec3, s: Vec3, y: Vec3, G=None):
+def chain(scene: Scene, a: Vec3, s: Vec3, y: Vec3, G=None, b_dir: bool = False):
     """(log a_1^eff, G_perp) of the chain a -> s -> y (module doc): a under the water, y a
-    light point above it, s the root. `G`: G_perp if already evaluated. The log factor is
-    a stopped value (a weight's)."""
+    light point above it (`b_dir`: the direction the sun's light travels), s the root.
+    `G`: G_perp if already evaluated (the sun: d A_perp(beam) / d A_perp(a)). The log
+    factor is a stopped value (a weight's)."""
     water = scene.water
     if G is None:
-        G = manifold.generalized_geometry(water, a, s, y, refract=True)
+        G = manifold.generalized_geometry(water, a, s, y, refract=True, b_is_direction=b_dir)
     sg = jax.lax.stop_gradient
     a, s, y, Gs = sg(a), sg(s), sg(y), sg(G)
     n_s = _normal(sg(water), s)
-    d_sy = vec.length(y - s)
+    tiny = 1e-30
+    if b_dir:  # towards the sun; no distance: a_1 of a line from infinity is cos_s p_disk
+        w_y, log_d2 = vec.normalize(-y), 0.0
+    else:
+        d_sy = vec.length(y - s)
+        w_y, log_d2 = (y - s) / jnp.maximum(d_sy, 1e-30), 2.0 * jnp.log(jnp.maximum(d_sy, tiny))
     d_sa = vec.length(a - s)
-    cos_s = jnp.abs(vec.dot(n_s, (y - s) / jnp.maximum(d_sy, 1e-30)))
+    cos_s = jnp.abs(vec.dot(n_s, w_y))
     R, _ = fresnel_dielectric(cos_s, sg(water.ior))  # the light arrives from the air
     p_t = 1.0 - R
-    tiny = 1e-30
-    log_eff = (jnp.log(jnp.maximum(cos_s, tiny)) - 2.0 * jnp.log(jnp.maximum(d_sy, tiny))
+    log_eff = (jnp.log(jnp.maximum(cos_s, tiny)) - log_d2
                - 2.0 * jnp.log(jnp.maximum(d_sa, tiny)) - jnp.log(jnp.maximum(p_t, tiny))
                - jnp.log(jnp.maximum(Gs, tiny)))
     ok = (cos_s > 0) & (p_t > 0) & (Gs > 0) & jnp.isfinite(Gs)
     return jnp.where(ok, log_eff, -jnp.inf), G
 
 
-def solve(scene: Scene, a: Vec3, y: Vec3, iters: int = ITERS) -> manifold.Near:
+def solve(scene: Scene, a: Vec3, y: Vec3, b_dir: bool = False, iters: int = ITERS
+          ) -> manifold.Near:
     """F(a, y): Newton from the flat-water seed (the technique's one solve)."""
     water = scene.water
-    x0, z0 = manifold.flat_seed(water, a, y)
-    return manifold.solve_near(water, a, y, x0, z0, refract=True, iters=iters)
+    x0, z0 = manifold.flat_seed(water, a, y, b_is_direction=b_dir)
+    return manifold.solve_near(water, a, y, x0, z0, refract=True, b_is_direction=b_dir,
+                               iters=iters)
 
 
-def returns(scene: Scene, a: Vec3, y: Vec3, s: Vec3):
+def returns(scene: Scene, a: Vec3, y: Vec3, s: Vec3, b_dir: bool = False):
     """F(a, y) returns the surface vertex s of a path (the check every site makes before
     it counts the technique's pdf)."""
     sg = jax.lax.stop_gradient
     a, y, s = sg(a), sg(y), sg(s)
-    r = solve(scene, a, y)
+    r = solve(scene, a, y, b_dir)
     return r.valid & (vec.length(sg(r.s) - s) <= 1e-4 * (1.0 + vec.length(s - a)))
 
 
@@ -139,12 +156,14 @@ def _surface_vertex(scene: Scene, v) -> jax.Array:
     return v.delta & (v.kind == MAT_DIELECTRIC) & (v.mat == scene.water.mat)
 
 
-def _shape(scene: Scene, a, s, y_p: Vec3, light, light_ok):
+def _shape(scene: Scene, a, s, y_p: Vec3, light, light_ok, b_dir: bool = False):
     """The path a -> s -> y_0 is one the technique makes: a live non-delta vertex under
-    the water, s on the surface, y_0 a point light end above the water."""
+    the water, s on the surface, y_0 a light end of kind `b_dir` (a point: above the
+    water; the sun: shining down)."""
     water = scene.water
-    return (light_ok & _point_light(scene, light) & a.alive & ~a.delta & _surface_vertex(scene, s)
-            & manifold.below(water, a.p) & ~manifold.below(water, y_p))
+    above = (y_p.y < 0) if b_dir else ~manifold.below(water, y_p)
+    return (light_ok & _of_end(scene, light, b_dir) & a.alive & ~a.delta
+            & _surface_vertex(scene, s) & manifold.below(water, a.p) & above)
 
 
 def light_factors(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission):
@@ -160,26 +179,33 @@ def light_factors(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emis
     y1, y2 = rows(lig, [1]), rows(lig, [2])
     one = lambda r: jax.tree.map(lambda a: a[0], r)  # noqa: E731
     y1, y2 = one(y1), one(y2)
-    shape = _shape(scene, y2, y1, e.p, e.light, ~e.infinite)
     at = vertex_table(lig)
-
-    def item(n):
-        s, a = at(1, n), at(2, n)
-        y = Vec3(*(c[n] for c in e.p))
-        ok = returns(scene, a.p, y, s.p)
-        lm, _ = chain(scene, a.p, s.p, y)
-        lm = lm - jnp.log(jnp.maximum(jax.lax.stop_gradient(s.A), 1e-30))
-        ok = ok & jnp.isfinite(lm) & (s.A > 0)
-        return ok, jnp.where(ok, lm, 0.0)
-
     lanes = jnp.arange(N, dtype=jnp.int32)
-    return masked_map(item, shape, (lanes,), (False, 0.0), 2)
+    ok_all, lm_all = jnp.zeros((N,), bool), jnp.zeros((N,), dt)
+    for b_dir in _ends(scene):  # one queue per kind of light end
+        end = (e.infinite & e.delta) if b_dir else ~e.infinite
+        shape = _shape(scene, y2, y1, e.d if b_dir else e.p, e.light, end, b_dir)
+
+        def item(n, b_dir=b_dir):
+            s, a = at(1, n), at(2, n)
+            y = Vec3(*(c[n] for c in (e.d if b_dir else e.p)))
+            ok = returns(scene, a.p, y, s.p, b_dir)
+            lm, _ = chain(scene, a.p, s.p, y, b_dir=b_dir)
+            lm = lm - jnp.log(jnp.maximum(jax.lax.stop_gradient(s.A), 1e-30))
+            ok = ok & jnp.isfinite(lm) & (s.A > 0)
+            return ok, jnp.where(ok, lm, 0.0)
+
+        ok, lm = masked_map(item, shape, (lanes,), (False, 0.0), 2)
+        ok_all, lm_all = ok_all | ok, jnp.where(ok, lm, lm_all)
+    return ok_all, lm_all
 
 
 def emitter_hit_factor(scene: Scene, za, zs, z, light, escaped, j, A_s1):
     """(ok, lm) of an emitter hit at z = z_j through z_{j-1} = zs on the water surface from
     za = z_{j-2} (`_mis._explicit.join`'s `c2`): the technique makes that path iff F(za, z)
     returns zs; A_s1: the join's light-side pdf of zs, a_1."""
+    if not any(not b for b in _ends(scene)):  # no light a camera path can hit
+        return jnp.zeros((), bool), jnp.zeros((), A_s1.dtype)
     shape = (j >= 3) & ~escaped & _shape(scene, za, zs, z.p, light, jnp.ones((), bool))
     ok = shape & returns(scene, za.p, z.p, zs.p)
     lm, _ = chain(scene, za.p, zs.p, z.p)
@@ -233,68 +259,91 @@ def manifold_nee(scene: Scene, cfg: RenderConfig, cam: PathEnds, parts, etas, ke
     def emission(i, n):
         return lights.sample_emission(scene, u[i, n])
 
-    def search(i, n):  # the cheap part: the light point and one Newton solve
-        a = cam_at(j_of[i], n)
-        e = emission(i, n)
-        ok = ~e.infinite & _point_light(scene, e.light) & ~manifold.below(water, e.p)
-        r = solve(scene, a.p, e.p)
-        return ok & r.valid, sg(r.s.x), sg(r.s.z)
-
     ii = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
-    found, xs, zs_ = masked_map(search, want, (ii, nn), (False, 0.0, 0.0), 2 * J)
+    out = jnp.zeros((J, N, C), dt)
+    for b_dir in _ends(scene):  # two queues per kind of light end (a point, the sun)
 
-    def item(i, n):
-        j = j_of[i]
-        ok = found[i, n]
-        # a round's padding items (not found) run on a safe stand-in (a vertex under the
-        # water with a light straight above it), so that no NaN of a garbage vertex enters
-        # the gradients through the masked-out branch
-        z = _safe_vertex(scene, ok, cam_at(j, n))
-        zp = cam_at(j - 1, n)
-        e = emission(i, n)
-        y = vec.where(ok, e.p, Vec3(z.p.x, water.level + 1.0, z.p.z))
-        x0, z0 = jnp.where(ok, xs[i, n], z.p.x), jnp.where(ok, zs_[i, n], z.p.z)
-        # the root again from itself: the polish step and its implicit-function derivatives
-        s = manifold.solve_near(water, z.p, y, x0, z0, refract=True, iters=0).s
-        # ---- visibility: a -> s (under the water), s -> y_0 (above it) ----
-        w_a, d_as, oa, wd, tmax = _segment(z.p, z.n, z.medium, s)
-        vis = geometry.unoccluded(scene, oa, wd, tmax, cfg.march_steps)
-        n_s = _normal(water, s)
-        d_sy = vec.length(y - s)
-        w_y = (y - s) / jnp.maximum(d_sy, 1e-30)
-        o2 = subpath.offset(s, n_s, w_y)
-        vis = vis & geometry.unoccluded(scene, o2, w_y, vec.length(y - o2) * (1.0 - 1e-4),
-                                        cfg.march_steps)
-        # ---- contribution ----
-        lm_eff, G = chain(scene, z.p, s, y)
-        T = manifold.fresnel_factor(water, z.p, s, y, refract=True)
-        Tr = media.transmittance(water, d_as) * jnp.ones((C,), dt)
-        I = lights.emitted_toward(scene, e.light, -w_y, e.n)
-        f = subpath.eval_f(scene, z.kind, z.mat, z.wo, w_a, z.n)
-        contrib = z.beta * f * I * T * Tr * G / e.pdf_pos
-        # ---- the pdfs at the join (technique (2, j + 1): light y_0, s; camera z_j ..) ----
-        pe = lights.emission_pdf_dir(scene, e.light, e.n, -w_y, s)
-        a1 = pe * subpath.to_area(1.0, False, n_s, w_y, d_sy, False, water)
-        A_s = subpath.to_area(1.0, z.medium, z.n, w_a, d_as, True, water)  # Dirac at s: 1
-        A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, w_a, z.wo, zp.p, zp.medium,
-                              zp.n, z.seg_water)
-        B_s1 = (subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, w_a, z.n)
-                * subpath.to_area(1.0, False, n_s, w_a, d_as, True, water))
-        B_s2 = subpath.to_area(1.0, False, e.n, w_y, d_sy, False, water)  # Dirac at s: 1
-        mj = mis_form(cfg)
-        dl = is_delta[e.light]
-        Le_ = two_vertex_light(cfg, sg(e.pdf_pos), sg(a1), dl, sg(etas[0]))
-        t = j + 1
-        Ce_ = mj.entries(cfg, parts[1], t, jnp.asarray(2, jnp.int32), (n,))
-        lm = lm_eff - jnp.log(jnp.maximum(sg(a1), 1e-30))
-        w = sg(mj.join(cfg, jnp.asarray(2, jnp.int32), t, Le_, Ce_, sg(A_s), sg(A_s1), sg(B_s1),
-                       sg(B_s2), dl, jnp.zeros((), bool), sg(log_n), lm_own=lm))
-        good = ok & vis & jnp.isfinite(lm)
-        return jnp.where(good, contrib * w, 0.0)
+        def end(e, b_dir=b_dir):  # the light end: a point, or the sun's travel direction
+            if b_dir:
+                return e.d, (e.infinite & e.delta) & (e.d.y < 0)
+            return e.p, ~e.infinite & ~manifold.below(water, e.p)
 
-    val = masked_map(item, found, (ii, nn), 0.0, 2 * J)
-    return {(2, int(j) + 1): val[i] for i, j in enumerate(js)}
+        def search(i, n, b_dir=b_dir, end=end):  # the cheap part: the light end, one solve
+            a = cam_at(j_of[i], n)
+            e = emission(i, n)
+            y, ok = end(e)
+            r = solve(scene, a.p, y, b_dir)
+            return ok & _of_end(scene, e.light, b_dir) & r.valid, sg(r.s.x), sg(r.s.z)
+
+        found, xs, zs_ = masked_map(search, want, (ii, nn), (False, 0.0, 0.0), 2 * J)
+
+        def item(i, n, b_dir=b_dir, end=end, found=found, xs=xs, zs_=zs_):
+            j = j_of[i]
+            ok = found[i, n]
+            # a round's padding items (not found) run on a safe stand-in (a vertex under
+            # the water, the light straight above it), so that no NaN of a garbage vertex
+            # enters the gradients through the masked-out branch
+            z = _safe_vertex(scene, ok, cam_at(j, n))
+            zp = cam_at(j - 1, n)
+            e = emission(i, n)
+            one, zero = jnp.ones((), dt), jnp.zeros((), dt)
+            y_safe = Vec3(zero, -one, zero) if b_dir else Vec3(z.p.x, water.level + 1.0, z.p.z)
+            y = vec.where(ok, end(e)[0], y_safe)
+            x0, z0 = jnp.where(ok, xs[i, n], z.p.x), jnp.where(ok, zs_[i, n], z.p.z)
+            # the root again from itself: the polish step and its implicit-function
+            # derivatives
+            s = manifold.solve_near(water, z.p, y, x0, z0, refract=True, b_is_direction=b_dir,
+                                    iters=0).s
+            # ---- visibility: a -> s (under the water), s -> the light (above it) ----
+            w_a, d_as, oa, wd, tmax = _segment(z.p, z.n, z.medium, s)
+            vis = geometry.unoccluded(scene, oa, wd, tmax, cfg.march_steps)
+            n_s = _normal(water, s)
+            if b_dir:
+                w_y, d_sy = vec.normalize(-y), jnp.asarray(jnp.inf, dt)
+            else:
+                d_sy = vec.length(y - s)
+                w_y = (y - s) / jnp.maximum(d_sy, 1e-30)
+            o2 = subpath.offset(s, n_s, w_y)
+            t2 = d_sy if b_dir else vec.length(y - o2) * (1.0 - 1e-4)
+            vis = vis & geometry.unoccluded(scene, o2, w_y, t2, cfg.march_steps)
+            # ---- contribution (the sun: its irradiance through the beam's Jacobian) ----
+            lm_eff, G = chain(scene, z.p, s, y, b_dir=b_dir)
+            T = manifold.fresnel_factor(water, z.p, s, y, refract=True, b_is_direction=b_dir)
+            Tr = media.transmittance(water, d_as) * jnp.ones((C,), dt)
+            if b_dir:
+                I = scene.lights.radiance[e.light]
+            else:
+                I = lights.emitted_toward(scene, e.light, -w_y, e.n)
+            f = subpath.eval_f(scene, z.kind, z.mat, z.wo, w_a, z.n)
+            contrib = z.beta * f * I * T * Tr * G / e.pdf_pos
+            # ---- the pdfs at the join (technique (2, j + 1): light y_0, s; camera z_j ..) --
+            # a_1: y_0 emits towards s (from the sun: the line through s, per perpendicular
+            # area) -> area at s
+            pe = lights.emission_pdf_dir(scene, e.light, e.n, -w_y, s)
+            a1 = pe * subpath.to_area(1.0, False, n_s, w_y, jnp.where(b_dir, 1.0, d_sy), False,
+                                      water, b_dir)
+            A_s = subpath.to_area(1.0, z.medium, z.n, w_a, d_as, True, water)  # Dirac at s: 1
+            A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, w_a, z.wo, zp.p, zp.medium,
+                                  zp.n, z.seg_water)
+            B_s1 = (subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, w_a, z.n)
+                    * subpath.to_area(1.0, False, n_s, w_a, d_as, True, water))
+            # b_0 through the Dirac at s (read only by the emitter hit's term: none for the
+            # sun, a delta light)
+            B_s2 = one if b_dir else subpath.to_area(1.0, False, e.n, w_y, d_sy, False, water)
+            mj = mis_form(cfg)
+            dl = is_delta[e.light]
+            Le_ = two_vertex_light(cfg, sg(e.pdf_pos), sg(a1), dl, sg(etas[0]))
+            t = j + 1
+            Ce_ = mj.entries(cfg, parts[1], t, jnp.asarray(2, jnp.int32), (n,))
+            lm = lm_eff - jnp.log(jnp.maximum(sg(a1), 1e-30))
+            w = sg(mj.join(cfg, jnp.asarray(2, jnp.int32), t, Le_, Ce_, sg(A_s), sg(A_s1),
+                           sg(B_s1), sg(B_s2), dl, jnp.asarray(b_dir), sg(log_n), lm_own=lm))
+            good = ok & vis & jnp.isfinite(lm)
+            return jnp.where(good, contrib * w, 0.0)
+
+        out = out + masked_map(item, found, (ii, nn), 0.0, 2 * J)
+    return {(2, int(j) + 1): out[i] for i, j in enumerate(js)}
 
 
 def _safe_vertex(scene: Scene, ok, z):

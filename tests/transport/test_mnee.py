@@ -207,3 +207,40 @@ def test_configurations_without_the_technique_are_refused(kw):
     with pytest.raises(ValueError, match=r"^config\.manifold_nee: [^\n]*$"):
         RenderConfig(manifold_nee=True, **kw)
     assert RenderConfig(algorithm="bpm", manifold_nee=True).record()["manifold_nee"] is True
+
+
+@pytest.mark.parametrize("alg", ["pt", "vcm"])
+def test_sun_floor_through_flat_water_matches_the_closed_form(alg):
+    # the sun (irradiance E on a plane normal to it) over flat water, the camera under the
+    # water h = 0.6 m above a Lambertian floor (albedo a) at depth d = 1 m, looking down
+    # (test_bidir's closed form): the beam keeps its horizontal footprint, so
+    #   E_floor = E cos(theta_i) T(theta_i) exp(-sigma_a d / cos theta_t),  L_f = a E_floor / pi,
+    # seen through h / cos(phi) of water. PT alone renders it black (test_bidir); with the
+    # technique it is PT's only path (G_perp = cos theta_i / cos theta_t across the ray),
+    # and VCM weighs it against light tracing and merging at the floor
+    from jaxvcm._materials import fresnel_dielectric
+    from tests import _scenes as S
+
+    d, h, a, eta, E = 1.0, 0.6, 0.7, 1.33, 3.0
+    sigma_a = np.array([0.3, 0.1, 0.05])
+    sun = np.array([-0.25, -1.0, 0.2])
+    sun = sun / np.linalg.norm(sun)
+    cos_i = -sun[1]
+    T = 1.0 - float(fresnel_dielectric(cos_i, eta)[0])
+    cos_t = np.sqrt(1 - (1 - cos_i**2) / eta**2)
+    L_f = a / np.pi * E * cos_i * T * np.exp(-sigma_a * d / cos_t)
+    scene = jaxvcm.scene_from_dict(S.flat_water_sun(d, sigma_a, eta, a, h, sun, E, w=N, h=N))
+    rng = np.random.default_rng(0)
+    th = np.tan(np.radians(70.0) / 2)
+    sx, sy = rng.uniform(-th, th, 400_000), rng.uniform(-th, th, 400_000)
+    cos_phi = 1.0 / np.sqrt(1 + sx**2 + sy**2)
+    expected = L_f * np.exp(-np.outer(h / cos_phi, sigma_a)).mean(0)
+    cfg = RenderConfig(algorithm=alg, max_depth=3, spp=4, rr_depth=100, manifold_nee=True,
+                       radius=0.002)
+    _, _, imgs, bad = A.render_stats(scene, cfg, passes=24)
+    assert bad == 0
+    x = imgs.mean(axis=(1, 2))
+    m, se = x.mean(0), x.std(0, ddof=1) / np.sqrt(len(x))
+    assert np.all(se < 0.0125 * expected), se / expected
+    np.testing.assert_array_less(np.abs(m - expected), 4 * se + 1e-3 * expected,
+                                 err_msg=str(m / expected))
