@@ -3,11 +3,12 @@ refraction at the surface, found by Newton and weighted inside the explicit MIS 
 
 The path ... z_{j-1}, a = z_j, s, y_0: a non-delta camera vertex a under the water (floor,
 wall, medium vertex), s on the water surface (a delta vertex: refraction), y_0 on a light
-above the water (area or point light). Without this technique only three kinds of
-technique make such paths: the camera's emitter hit through s (s = 0), a light subpath
-y_0 -> s -> a joined further on (connections with s >= 3 light vertices, light tracing)
-and merging at a (bpm, vcm). Next-event estimation from a cannot: its shadow ray crosses
-the surface (Hanika, Droske & Fascione 2015; Zeltner, Georgiev & Jakob 2020).
+above the water (area or point light), or the sun (a direction: below). Without this
+technique only three kinds of technique make such paths: the camera's emitter hit
+through s (s = 0), a light subpath y_0 -> s -> a joined further on (connections with
+s >= 3 light vertices, light tracing) and merging at a (bpm, vcm). Next-event estimation
+from a cannot: its shadow ray crosses the surface (Hanika, Droske & Fascione 2015;
+Zeltner, Georgiev & Jakob 2020).
 
 The technique (`manifold_nee`): at every live non-delta camera vertex a under the water, a
 point y_0 on a light (`_lights.sample_emission`, area pdf a_0 = p_sel / A; a point light's
@@ -45,7 +46,13 @@ first asks F(a, y_0) (the same function from the same vertices) and adds it only
 returns that path's s. So the weights of all techniques that make a path sum to 1 on
 every path: a root F misses (a fold's second root, a root outside the seed's basin) keeps
 the weights it had without this technique. Refused for a dispersive water (a hero-only
-refraction) and for the sun and sky (their light ends are directions).
+refraction); the sky is not a light end of it.
+
+The sun (`b_dir`: its light end is the direction d its light travels): the root is the
+entry point of the refracted beam through a, the contribution beta f E T T_r G_perp /
+p_sel with G_perp = d A_perp(beam) / d A_perp(a), and the light subpath's y_0 is its point
+on the emission disk: a_1 = p_disk cos_s (a line from infinity) and a_1^eff = cos_s /
+(d(s, a)^2 P_T G_perp).
 """
 
 from __future__ import annotations

@@ -127,10 +127,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="the glint technique: the lights seen in the waves, by a Newton "
                         "solve on the water surface per pixel (default: on for pt, bdpt, bpm "
                         "and vcm)")
-    r.add_argument("--manifold-nee", action=argparse.BooleanOptionalAction, default=None,
+    r.add_argument("--manifold-nee", action=argparse.BooleanOptionalAction, default=False,
                    help="manifold next-event estimation: the light reaching vertices under "
-                        "the water through the surface, by a Newton solve per vertex "
-                        "(default: on for pt, bdpt, bpm and vcm)")
+                        "the water through the surface, by a Newton solve per vertex (pt, "
+                        "bdpt, bpm, vcm; off by default: on the default pool it lowers the "
+                        "typical pixel's error but costs 2.6x per pass, docs/benchmarks.md)")
     r.add_argument("--radius", type=_finite_float_in(1e-9, 1.0), default=None, metavar="R",
                    help="first-pass merging radius as a fraction of the scene's bounding "
                         "radius (ppm/bpm/vcm; default 0.005)")
@@ -293,8 +294,7 @@ def _cmd_render(a) -> int:
     cfg = {"algorithm": a.algorithm}
     cfg["glints"] = (a.glints if a.glints is not None
                      else a.algorithm in ("pt", "bdpt", "bpm", "vcm"))
-    cfg["manifold_nee"] = (a.manifold_nee if a.manifold_nee is not None
-                           else a.algorithm in ("pt", "bdpt", "bpm", "vcm"))
+    cfg["manifold_nee"] = a.manifold_nee
     if a.max_depth is not None:
         cfg["max_depth"] = a.max_depth
     if a.radius is not None:

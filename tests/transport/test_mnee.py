@@ -3,26 +3,30 @@ pool through its surface, against the closed form of a flat surface and against 
 techniques it competes with.
 
 Scene: flat water at level 0 over a white floor 1 m down (footprint [-1, 1]^2, no walls),
-lit from above by a point light and a small downward-facing rect light; the camera 0.5 m
-above the floor, under the water, looking straight down. With max_depth 3 the only light
-is pinhole -> floor -> surface (refraction) -> light, so every pixel has a closed form:
+lit from above by a point light, a small downward-facing rect light and the sun; the
+camera 0.5 m above the floor, under the water, looking straight down. With max_depth 3
+the only light is pinhole -> floor -> surface (refraction) -> light, so every pixel has a
+closed form:
 
     L(X) = exp(-sigma_a |c - X|) albedo / pi E(X),
     E(X) = sum over light points y of I_y T(theta_a) exp(-sigma_a D / cos theta_w)
            sin theta_a / (rho d rho / d theta_a)
+           + E_sun cos theta_i T(theta_i) exp(-sigma_a D / cos theta_t)
 
 (rho(theta_a) = H tan theta_a + D tan theta_w, sin theta_a = eta sin theta_w: the
 horizontal distance from y's foot at which light leaving y at theta_a lands at depth D;
 d omega = sin theta_a d theta_a d phi over the floor's d A = rho d rho d phi; T the
 Fresnel transmittance; the rect light as a 16 x 16 grid of points of intensity
-L cos theta_a dA), averaged over each pixel's footprint (8 x 8 film points).
+L cos theta_a dA; the sun's parallel beam keeps its horizontal footprint: its flux
+E cos theta_i per unit floor), averaged over each pixel's footprint (8 x 8 film points).
 
-Who makes these paths: the point light only light tracing (s = 3, t = 1; bdpt, vcm) and
-merging (vcm), never PT (its emitter hit cannot hit a point, its next-event estimation
-is blocked by the surface); the rect light also the emitter hit. So PT alone renders the
-point light's floor black (a planted blindness); with the technique, PT (against the
-emitter hits), BDPT (and light tracing) and VCM (and merging at the floor) each give the
-closed form, every weight of the explicit sums in play.
+Who makes these paths: for the point light and the sun only light tracing (s = 3, t = 1;
+bdpt, vcm) and merging (vcm), never PT (its emitter hit cannot hit a point or the sun,
+its next-event estimation is blocked by the surface); for the rect light also the
+emitter hit. So PT alone renders their share of the floor black (a planted blindness);
+with the technique, PT (against the emitter hits), BDPT (and light tracing) and VCM (and
+merging at the floor) each give the closed form, every weight of the explicit sums in
+play.
 """
 
 from __future__ import annotations
@@ -44,6 +48,8 @@ SIGMA_A = np.array([0.3, 0.1, 0.05])
 POINT = np.array([0.25, 1.4, -0.15])
 I_POINT = 6.0
 RECT_C, RECT_SIZE, RECT_L = np.array([-0.3, 1.1, 0.2]), 0.3, 40.0
+SUN = np.array([-0.25, -1.0, 0.2]) / np.linalg.norm([-0.25, -1.0, 0.2])
+E_SUN = 3.0
 
 
 def _scene_doc():
@@ -57,7 +63,8 @@ def _scene_doc():
                   "footprint": [-1.0, 1.0, -1.0, 1.0], "floor": -DEPTH - 0.01},
         "lights": [{"type": "point", "position": POINT.tolist(), "intensity": I_POINT},
                    {"type": "rect", "center": RECT_C.tolist(), "normal": [0.0, -1.0, 0.0],
-                    "size": [RECT_SIZE, RECT_SIZE], "radiance": RECT_L}],
+                    "size": [RECT_SIZE, RECT_SIZE], "radiance": RECT_L},
+                   {"type": "sun", "direction": SUN.tolist(), "irradiance": E_SUN}],
     }
 
 
@@ -84,7 +91,7 @@ def _irradiance(X, y, I_of_cos):
     return g[:, None] * np.exp(-SIGMA_A[None] * D / np.cos(tw)[:, None])
 
 
-def _closed_form(scene, lights=("point", "rect")):
+def _closed_form(scene, lights=("point", "rect", "sun")):
     """[N, N, C] per-pixel means of the module doc's closed form."""
     cam = scene.camera
     f, r, u = (np.asarray(a, float) for a in (cam.forward, cam.right, cam.up))
@@ -109,6 +116,11 @@ def _closed_form(scene, lights=("point", "rect")):
             for b in g:
                 y = RECT_C + np.array([a * RECT_SIZE, 0.0, b * RECT_SIZE])
                 E += _irradiance(X, y, lambda ca: RECT_L * ca * dA)
+    if "sun" in lights:
+        cos_i = -SUN[1]
+        cos_t = np.sqrt(1 - (1 - cos_i**2) / ETA**2)
+        T = 1.0 - float(jaxvcm.fresnel_unpolarised(cos_i, ETA))
+        E += E_SUN * cos_i * T * np.exp(-SIGMA_A * DEPTH / cos_t)[None]
     L = np.exp(-SIGMA_A[None] * s[:, None]) * ALBEDO / np.pi * E
     return L.reshape(N, S, N, S, 3).mean((1, 3))
 
@@ -143,16 +155,16 @@ def test_floor_through_flat_water_matches_the_closed_form(setup, alg):
     np.testing.assert_array_less(np.abs(ratio - 1.0), 4 * err + 2e-3, err_msg=str(ratio))
 
 
-def test_pt_alone_leaves_the_point_light_dark(setup):
+def test_pt_alone_leaves_the_point_light_and_the_sun_dark(setup):
     # the planted blindness: without the technique PT's only path to these lights is the
-    # emitter hit of the rect light; the point light's share of the floor never arrives
+    # emitter hit of the rect light; the point light's and the sun's share never arrives
     scene, ref = setup
     cfg = RenderConfig(algorithm="pt", max_depth=3, rr_depth=100)
     mean, se, _, _ = A.render_stats(scene, cfg, passes=16)
     ratio, _ = _pooled_ratio(mean, se, ref)
-    point = _closed_form(scene, ("point",)).sum((0, 1)) / ref.sum((0, 1))
-    assert np.all(point > 0.2)  # the point light is a fair part of the closed form
-    assert np.all(ratio < 1.0 - 0.5 * point), (ratio, point)
+    dark = _closed_form(scene, ("point", "sun")).sum((0, 1)) / ref.sum((0, 1))
+    assert np.all(dark > 0.3)  # a fair part of the closed form
+    assert np.all(ratio < 1.0 - 0.5 * dark), (ratio, dark)
 
 
 def test_gradients_through_the_root():
@@ -208,39 +220,3 @@ def test_configurations_without_the_technique_are_refused(kw):
         RenderConfig(manifold_nee=True, **kw)
     assert RenderConfig(algorithm="bpm", manifold_nee=True).record()["manifold_nee"] is True
 
-
-@pytest.mark.parametrize("alg", ["pt", "vcm"])
-def test_sun_floor_through_flat_water_matches_the_closed_form(alg):
-    # the sun (irradiance E on a plane normal to it) over flat water, the camera under the
-    # water h = 0.6 m above a Lambertian floor (albedo a) at depth d = 1 m, looking down
-    # (test_bidir's closed form): the beam keeps its horizontal footprint, so
-    #   E_floor = E cos(theta_i) T(theta_i) exp(-sigma_a d / cos theta_t),  L_f = a E_floor / pi,
-    # seen through h / cos(phi) of water. PT alone renders it black (test_bidir); with the
-    # technique it is PT's only path (G_perp = cos theta_i / cos theta_t across the ray),
-    # and VCM weighs it against light tracing and merging at the floor
-    from jaxvcm._materials import fresnel_dielectric
-    from tests import _scenes as S
-
-    d, h, a, eta, E = 1.0, 0.6, 0.7, 1.33, 3.0
-    sigma_a = np.array([0.3, 0.1, 0.05])
-    sun = np.array([-0.25, -1.0, 0.2])
-    sun = sun / np.linalg.norm(sun)
-    cos_i = -sun[1]
-    T = 1.0 - float(fresnel_dielectric(cos_i, eta)[0])
-    cos_t = np.sqrt(1 - (1 - cos_i**2) / eta**2)
-    L_f = a / np.pi * E * cos_i * T * np.exp(-sigma_a * d / cos_t)
-    scene = jaxvcm.scene_from_dict(S.flat_water_sun(d, sigma_a, eta, a, h, sun, E, w=N, h=N))
-    rng = np.random.default_rng(0)
-    th = np.tan(np.radians(70.0) / 2)
-    sx, sy = rng.uniform(-th, th, 400_000), rng.uniform(-th, th, 400_000)
-    cos_phi = 1.0 / np.sqrt(1 + sx**2 + sy**2)
-    expected = L_f * np.exp(-np.outer(h / cos_phi, sigma_a)).mean(0)
-    cfg = RenderConfig(algorithm=alg, max_depth=3, spp=4, rr_depth=100, manifold_nee=True,
-                       radius=0.002)
-    _, _, imgs, bad = A.render_stats(scene, cfg, passes=24)
-    assert bad == 0
-    x = imgs.mean(axis=(1, 2))
-    m, se = x.mean(0), x.std(0, ddof=1) / np.sqrt(len(x))
-    assert np.all(se < 0.0125 * expected), se / expected
-    np.testing.assert_array_less(np.abs(m - expected), 4 * se + 1e-3 * expected,
-                                 err_msg=str(m / expected))
