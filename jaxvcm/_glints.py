@@ -29,8 +29,9 @@ MIS (power or balance heuristic, beta). In the area measure of y, per sample of 
     p_g  = p_A(y)                                   the light's pdf (selection included),
     p_eh = W(w) P_sel(s) |d w / d A_y| P_pass(c, s)  the camera ray through the surface
 (P_sel: the camera path's Fresnel choice of the lobe at s; P_pass: its water's
-distance-sampling factor, 1 above the water). The glint technique takes
-w_g = p_g^beta / (p_g^beta + p_eh^beta) of the paths F_j returns, the emitter hit
+distance-sampling factor, 1 above the water). With n light points per camera path
+(`SAMPLES`, each point's value divided by n) the glint technique takes
+w_g = (n p_g)^beta / ((n p_g)^beta + p_eh^beta) of the paths F_j returns, the emitter hit
 w_eh = 1 - w_g of those (`emitter_share`, evaluated at every emitter hit of that shape
 with the same F_j) and w_eh = 1 (its weight without glints, as no other technique makes
 these paths) of every other path. So on every path w_g + w_eh = 1 whatever the solver
@@ -61,6 +62,11 @@ from ._scene import LIGHT_POINT, LIGHT_RECT, LIGHT_SPHERE, LIGHT_SUN, MAT_DIELEC
 from ._vec import Vec3
 
 ITERS = 8  # Newton iterations from the pixel's seed (the root lies within a pixel's footprint)
+# light points per camera path: the technique's variance is that of the light point alone
+# (the pixel's seed is fixed), and its search is cheap next to the pass, so several points
+# per path cut it at little cost; their count n multiplies the technique's pdf in the MIS
+# weights (the balance / power heuristic with n samples, Veach 1997 9.2)
+SAMPLES = 8
 STREAM = 0x67_6C_69_6E  # fold_in tag of the glint samples' key ("glin")
 
 
@@ -137,10 +143,11 @@ def _emitter_pdf(scene: Scene, c: Vec3, s: Vec3, refract, G):
     return jax.lax.stop_gradient(imp * P_sel * G * P_pass)
 
 
-def glint_weight(cfg: RenderConfig, p_g, p_eh):
-    """w_g = p_g^beta / (p_g^beta + p_eh^beta) (module doc); the emitter hit's share is the
-    same function with the pdfs swapped."""
-    return _share(cfg, p_g, p_eh)
+def glint_weight(cfg: RenderConfig, p_g, p_eh, samples: int = SAMPLES):
+    """w_g = (n p_g)^beta / ((n p_g)^beta + p_eh^beta) with n = `samples` light points per
+    path (module doc); the emitter hit's share is the same function with the pdfs
+    swapped (`emitter_share`, with the same n)."""
+    return _share(cfg, samples * p_g, p_eh)
 
 
 def _share(cfg: RenderConfig, p_own, p_other):
@@ -176,7 +183,7 @@ def _search(scene: Scene, pixel, e: lights.Emission, refract, exists, b_dir: boo
 
 
 def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, refract,
-                  b_dir: bool):
+                  b_dir: bool, samples: int = SAMPLES):
     """The weighted contribution [C] of a root the search found at (x, z) (the costly
     part: the differentiable root, both shadow rays, the chain's Jacobians, MIS)."""
     water = scene.water
@@ -215,7 +222,7 @@ def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, ref
         scale = manifold.radiance_scale(water, c, b, refract=refract)
         area = base * Le * scale * G_a
         p_eh = _emitter_pdf(scene, c, s, refract, G_a)
-        w_area = glint_weight(cfg, jax.lax.stop_gradient(e.pdf_pos), p_eh)
+        w_area = glint_weight(cfg, jax.lax.stop_gradient(e.pdf_pos), p_eh, samples)
         if any(k == LIGHT_POINT for k in kinds):
             is_point = jnp.zeros((), bool)
             for k, kind in enumerate(kinds):
@@ -230,29 +237,32 @@ def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, ref
     return jnp.where(vis, val * wgt, 0.0)
 
 
-def glints(scene: Scene, cfg: RenderConfig, pixel, key):
+def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES):
     """The glint technique for every camera path (its pixel [N]): [N, C] per path, the
     film's mean over its pixel's samples as every camera technique. Every path samples
-    its light point and runs its pixel's Newton solve; only the paths whose solve found a
-    root in the pixel (a few per cent in a pool) trace the shadow rays and evaluate the
-    Jacobians, as one work queue (`_queue.masked_map`)."""
+    `samples` light points and runs its pixel's Newton solve for each; only the (path,
+    point) items whose solve found a root in the pixel (a few per cent in a pool) trace
+    the shadow rays and evaluate the Jacobians, as one work queue (`_queue.masked_map`);
+    the path's value is the mean over its points."""
     N = pixel.shape[0]
+    K = N * samples
     dt = scene.camera.origin.dtype
-    u = jax.random.uniform(key, (N, 5), dt)
+    u = jax.random.uniform(key, (K, 5), dt)
     refract, exists = law(scene, vec.from_array(scene.camera.origin))
     e = jax.vmap(lambda uu: lights.sample_emission(scene, uu))(u)
-    out = jnp.zeros((N, scene.channels), dt)
-    lane = jnp.arange(N, dtype=jnp.int32)
+    pix = jnp.repeat(pixel, samples)  # item k: path k // samples
+    out = jnp.zeros((K, scene.channels), dt)
+    item_of = jnp.arange(K, dtype=jnp.int32)
     for b_dir in _ends(scene):
         found, x, z = jax.vmap(lambda p, ee: _search(scene, p, ee, refract, exists, b_dir))(
-            pixel, e)
+            pix, e)
 
-        def item(n, b_dir=b_dir, x=x, z=z):
-            en = jax.tree.map(lambda a: a[n], e)
-            return _contribution(scene, cfg, en, x[n], z[n], refract, b_dir)
+        def item(k, b_dir=b_dir, x=x, z=z):
+            ek = jax.tree.map(lambda a: a[k], e)
+            return _contribution(scene, cfg, ek, x[k], z[k], refract, b_dir, samples)
 
-        out = out + masked_map(item, found, (lane,), 0.0, 16)
-    return out
+        out = out + masked_map(item, found, (item_of,), 0.0, 16)
+    return out.reshape(N, samples, -1).mean(axis=1)
 
 
 def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, escaped, j, pixel):
@@ -280,5 +290,5 @@ def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, esca
     same = vec.length(sg(s) - sg(z1.p)) <= 1e-4 * (1.0 + d)
     found = shape & exists & seed_ok & r.valid & inside & (pix == pixel) & same
     p_eh = emitter_pdf(scene, z0, s, y, z2.n, refract)
-    p_g = lights.light_point_pdf(scene, light, y)
+    p_g = SAMPLES * lights.light_point_pdf(scene, light, y)  # n points per path
     return jnp.where(found, _share(cfg, p_eh, p_g), jnp.ones((), dt))  # 1 - glint_weight

@@ -131,7 +131,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="manifold next-event estimation: the light reaching vertices under "
                         "the water through the surface, by a Newton solve per vertex (pt, "
                         "bdpt, bpm, vcm; off by default: on the default pool it lowers the "
-                        "typical pixel's error but costs 2.6x per pass, docs/benchmarks.md)")
+                        "typical pixel's error but costs 1.8x per pass, docs/benchmarks.md)")
     r.add_argument("--radius", type=_finite_float_in(1e-9, 1.0), default=None, metavar="R",
                    help="first-pass merging radius as a fraction of the scene's bounding "
                         "radius (ppm/bpm/vcm; default 0.005)")

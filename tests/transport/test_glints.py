@@ -70,7 +70,9 @@ def _pixel_of(scene, w):
 def _glint_stage(scene, cfg, keys):
     """The glint technique's image [K, H, W, C] of one sample per pixel, per key."""
     pix = jnp.arange(N * N, dtype=jnp.int32)
-    f = jax.jit(jax.vmap(lambda sc, k: glints.glints(sc, cfg, pix, k), in_axes=(None, 0)))
+    # one light point per path: each pixel's value is then 0 or one light's closed form
+    f = jax.jit(jax.vmap(lambda sc, k: glints.glints(sc, cfg, pix, k, samples=1),
+                         in_axes=(None, 0)))
     return np.asarray(f(scene, keys))
 
 
