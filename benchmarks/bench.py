@@ -58,6 +58,7 @@ from . import _common as C
 from . import peer_mitsuba as _peer
 from . import spectral as _sp
 from . import aim_sweep as _as
+from . import wide_pool as _wp
 from . import scaling as _sc
 from . import startup as _st
 from . import vertex_merging as _vm
@@ -244,6 +245,13 @@ def _parser() -> argparse.ArgumentParser:
                         "radius vs aimed where the camera looks (benchmarks/aim_sweep.py)")
     g.add_argument("--sweep-seconds", type=float, default=10.0, metavar="SEC",
                    help="seconds per row of --scale-sweep (10)")
+    g.add_argument("--wide-pool", action="store_true",
+                   help="the 120 m flat sunlit pool at max depth 10 (floor <-> surface "
+                        "interreflection): each algorithm's relative error against the closed "
+                        "form at equal time, no aim (default vcm ppm pt+mnee bdpt+mnee "
+                        "vcm+mnee; benchmarks/wide_pool.py)")
+    g.add_argument("--wide-seconds", type=float, default=60.0, metavar="SEC",
+                   help="seconds per algorithm of --wide-pool (60)")
     g.add_argument("--scaling", action="store_true",
                    help="time and memory per pass from 64 k to 4 M paths (chunked), and 1 vs "
                         "2 forced CPU devices (first scene, default vcm, depth 8; "
@@ -840,6 +848,10 @@ def _settings(argv):
         if a.mode:
             raise _Usage(f"--scale-sweep: not allowed with --{a.mode}")
         a.mode = "scale-sweep"
+    if a.wide_pool:
+        if a.mode:
+            raise _Usage(f"--wide-pool: not allowed with --{a.mode}")
+        a.mode = "wide-pool"
     if a.scaling:
         if a.mode:
             raise _Usage(f"--scaling: not allowed with --{a.mode}")
@@ -870,6 +882,7 @@ def _settings(argv):
                  "startup": list(_st.DEFAULT_ALGORITHMS),
                  "scaling": ["vcm"],
                  "scale-sweep": ["vcm", "ppm"],
+                 "wide-pool": list(_wp.DEFAULT_ALGORITHMS),
                  "peer": ["pt"]}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
@@ -1004,6 +1017,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "scale-sweep":
             _as.run_sweep(a, argv, C.Log(a.quiet))
+            return 0
+        if a.mode == "wide-pool":
+            _wp.run_wide(a, argv, C.Log(a.quiet))
             return 0
         if a.mode == "scaling":
             _sc.run_scaling(a, argv, a.scene_paths[0], C.Log(a.quiet))

@@ -68,6 +68,7 @@ from ._fit import write_outputs as write_fit_outputs
 from ._fit import write_outputs_spectral as write_spectral_fit_outputs
 from ._reference import fresnel_unpolarised as fresnel_unpolarised
 from ._reference import sky_floor_radiance as sky_floor_radiance
+from ._reference import sun_floor_radiance as sun_floor_radiance
 
 # ---- input / output
 from ._io import SceneError as SceneError

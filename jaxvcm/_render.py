@@ -4,6 +4,7 @@ progress bar, atomic snapshots) used by RGB `render` and spectral `render_spectr
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from typing import Any, Callable
 import hashlib
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from . import _devices, _hosts, _io, _memory, _warm
+from . import _devices, _hosts, _io, _memory, _signals, _warm
 from . import _merge
 from ._version import __version__
 from ._config import RenderConfig
@@ -153,7 +154,11 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
     snapshot)` its JSON record, to which "warnings" (one line each) is added;
     `to_layers(mean)` (optional) the EXR's extra layers {name: image}. With `out`,
     writes EXR + PNG + JSON at the end, and with `snapshot_every` (seconds) atomic snapshots
-    along the way, so a killed render leaves its last snapshot intact. The first pass
+    along the way, so a killed render leaves its last snapshot intact. An interrupted one
+    (SIGINT, SIGTERM, KeyboardInterrupt: `_signals`) finishes its pass in flight, writes the
+    set of the passes it has (its record says "interrupted") and re-raises, with the pass
+    count as the exception's `passes`. The output set is held for the render
+    (`_io.output_lock`): a second render to the same `out` is refused. The first pass
     includes the compilation: the progress line says "compiling" until it is done, and the
     snapshot clock starts when it has finished. Before anything, `out`'s set is recovered
     from an earlier killed render (`_io.recover_outputs`). On many processes (`_hosts`) every
@@ -163,6 +168,14 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
     passes, time = check_budget(passes, time)
     lead = _hosts.is_lead()
     out = out if lead else None
+    with _io.output_lock(out) if out else contextlib.nullcontext():
+        return _progressive(run_pass, to_image, meta, passes, time, out, snapshot_every,
+                            progress, exposure, total, start, to_layers)
+
+
+def _progressive(run_pass, to_image, meta, passes, time, out, snapshot_every, progress,
+                 exposure, total, start, to_layers):
+    lead = _hosts.is_lead()
     if out:
         _io.prefetch_imports()
         _io.recover_outputs(out)
@@ -183,8 +196,10 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
             s = total() if s is None else s + total()
         return s / i
 
+    interrupted = None
     try:
         while True:
+            _signals.defer(i > 0)  # a signal now ends the render after this pass
             ests, bad = run_pass(i)
             if isinstance(ests, (int, np.integer)):
                 i += int(ests)  # added on the devices
@@ -210,8 +225,22 @@ def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
                 last_snap = now
             if done:
                 break
+            _signals.check()
+    except KeyboardInterrupt as e:  # SIGINT / SIGTERM (`_signals`): keep the passes done
+        interrupted = e
     finally:
+        _signals.defer(False)
         bar.close()
+    if interrupted is not None:
+        if i > 0 and out and _hosts.count() == 1:  # several processes: the last snapshot
+            m = mean()
+            img = to_image(m).astype(np.float32)
+            rec = record(i, _time.perf_counter() - t0, img, False)
+            rec["interrupted"] = str(interrupted) or "SIGINT"
+            _io.write_outputs(out, img, rec, exposure,
+                              None if to_layers is None else to_layers(m))
+        interrupted.passes = i
+        raise interrupted
     m = mean()
     img = to_image(m).astype(np.float32)
     if nonfinite and lead:

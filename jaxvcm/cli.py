@@ -2,7 +2,9 @@
 
 Errors in the scene file or the arguments are reported as ONE line on stderr,
 `jaxvcm: error: <message>`, with exit status 2 and no traceback. An interrupted render
-(Ctrl-C) exits with 130; its last snapshot (see --snapshot-every) is already on disk.
+(Ctrl-C: SIGINT, or SIGTERM) finishes its pass in flight, writes the image set of the
+passes it has and exits with 130 (SIGINT) or 143 (SIGTERM); a second signal stops it at
+once, still writing what it has (`jaxvcm._signals`).
 A render's warnings (non-finite contributions zeroed, a black image) are one line each,
 `jaxvcm: warning: <message>`, and are also in the JSON sidecar ("warnings"). A render in
 which every path contribution was non-finite writes its (black) outputs and exits with 3.
@@ -26,7 +28,7 @@ import numpy as np
 
 import jaxvcm
 
-from . import _fit, _hosts
+from . import _fit, _hosts, _io, _signals
 from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
 from ._config import ALGORITHMS, MAX_DEPTH, RenderConfig
 from ._devices import resolve_devices
@@ -115,6 +117,7 @@ def _pos_int(lo=1, hi=None):
 def _parser() -> argparse.ArgumentParser:
 
     p = _Parser(prog=PROG, description="Differentiable JAX renderer for analytic water scenes.")
+    p.add_argument("--version", action="version", version=f"{PROG} {jaxvcm.__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
@@ -262,9 +265,8 @@ def _cmd_render_spectral(a, out, config) -> int:
         with _quiet_nonfinite_warning():
             jaxvcm.render_spectral(sp, passes=passes, seed=a.seed, config=config, out=out,
                                    exposure=a.exposure)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr, flush=True)
-        return 130
+    except KeyboardInterrupt as e:
+        return _interrupted(e, out)
     if not a.quiet:
         print(f"spectral: {passes} passes x {sp.n_wavelengths} wavelengths in "
               f"{time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
@@ -280,11 +282,26 @@ def _quiet_nonfinite_warning():
         yield
 
 
+def _interrupted(e: KeyboardInterrupt, out: str | None) -> int:
+    """One line for a render stopped by SIGINT / SIGTERM (`_signals`); its exit status
+    (130 / 143). The render has written the set of the passes it had."""
+    n = getattr(e, "passes", 0)
+    what = f" ({e})" if isinstance(e, _signals.Interrupted) else ""
+    kept = (f" after {n} pass{'es' if n != 1 else ''}: {out}" if n and out
+            and os.path.exists(out) else " before its first pass: nothing written"
+            if not n else "")
+    print(f"{PROG}: interrupted{what}{kept}", file=sys.stderr, flush=True)
+    return getattr(e, "status", 130)
+
+
 def _cmd_render(a) -> int:
 
-    out = a.out or _default_out(a.scene)
+    out = _default_out(a.scene) if a.out is None else a.out
+    if not out.strip():
+        raise ValueError("--out: empty; name an .exr file")
     if os.path.splitext(out)[1].lower() != ".exr":
         raise ValueError(f"--out: must end in .exr, got {out!r}")
+    _io.check_output_set(out)  # before anything is loaded, compiled or rendered
     if not a.spectral and (a.wavelengths is not None or a.water is not None):
         raise ValueError(("--wavelengths" if a.wavelengths is not None else "--water")
                          + ": only with --spectral")
@@ -339,10 +356,8 @@ def _cmd_render(a) -> int:
                           exposure=a.exposure, scene_path=a.scene, config=config,
                           progress=not a.quiet, devices=a.devices, resume=a.resume,
                           memory=a.memory, techniques=a.techniques)
-    except KeyboardInterrupt:
-        snap = " (last snapshot: " + out + ")" if a.snapshot_every and os.path.exists(out) else ""
-        print(f"{PROG}: interrupted{snap}", file=sys.stderr, flush=True)
-        return 130
+    except KeyboardInterrupt as e:
+        return _interrupted(e, out)
     if not lead:
         return 0
     print(out)
@@ -445,9 +460,17 @@ def _cmd_export(a) -> int:
 def _cmd_fit(a) -> int:
 
     kw = _fit.load_fit_config(a.config)  # validate everything before any rendering
-    out = a.out or os.path.join("out", os.path.splitext(os.path.basename(a.config))[0] or "fit")
+    out = (os.path.join("out", os.path.splitext(os.path.basename(a.config))[0] or "fit")
+           if a.out is None else a.out)
+    if not out.strip():
+        raise ValueError("--out: empty; name the folder for the fit's outputs")
     if os.path.exists(out) and not os.path.isdir(out):
         raise ValueError(f"--out: {out!r} exists and is not a directory")
+    try:  # writable before the fit, not after it
+        os.makedirs(out, exist_ok=True)
+        check_writable(os.path.join(out, "fit.json"))
+    except OSError as e:
+        raise ValueError(f"--out: {out!r}: cannot write there ({e.strerror or e})") from None
     _enable_compilation_cache()
     if kw.pop("mode", "rgb") == "spectral":
         res = _fit.fit_spectral(**kw, progress=not a.quiet)
@@ -519,36 +542,39 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_bench(argv[1:])
         a = _parser().parse_args(argv)
         if a.command == "render":
-            return _cmd_render(a)
+            with _signals.handled():
+                return _cmd_render(a)
         if a.command == "info":
             return _cmd_info(a)
         if a.command == "export":
             return _cmd_export(a)
         if a.command == "fit":
-            return _cmd_fit(a)
+            with _signals.handled():
+                return _cmd_fit(a)
         return _err(f"unknown command {a.command!r}")  # pragma: no cover
     except _UsageError as e:
         return _err(e)
     except (ValueError, OSError) as e:  # SceneError is a ValueError
         return _err(e)
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr, flush=True)
-        return 130
+    except KeyboardInterrupt as e:
+        print(f"{PROG}: interrupted" + (f" ({e})" if isinstance(e, _signals.Interrupted)
+                                        else ""), file=sys.stderr, flush=True)
+        return getattr(e, "status", 130)
     except SystemExit as e:  # --help
         return e.code if isinstance(e.code, int) else (0 if e.code is None else _err(e.code))
 
 
 def entry() -> None:
     """Process entry point (console script, `python -m jaxvcm`, `python -m jaxvcm.cli`).
-    After an interrupt (status 130) the outputs are already complete on disk, so the
+    After an interrupt (status 130 or 143) the outputs are already complete on disk, so the
     process leaves at once instead of tearing down the interpreter: a SIGINT that lands
     while XLA worker threads are busy (a pass in flight, a compilation) could otherwise
     keep the process alive for as long as they take."""
     rc = main()
-    if rc == 130:
+    if rc in (130, 143):
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
+        os._exit(rc)
     sys.exit(rc)
 
 

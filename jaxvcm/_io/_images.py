@@ -19,6 +19,7 @@ the JSON from the EXR, so the next start (or a reader who calls it) has a consis
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import glob
 import hashlib
 import io
@@ -146,6 +147,85 @@ def check_writable(path: str) -> None:
     """Raise `OutputError` (one line naming `path`) now if `path` cannot be written the way
     the outputs are (a temp file beside it), rather than after a long render."""
     os.unlink(_mkstemp_near(os.fspath(path)))
+
+
+def check_output_set(out_path: str) -> None:
+    """Check, before any work, that the output set of `out_path` (.exr + .png + .json) can
+    be written: a non-empty path ending in .exr, none of the three a directory, the folder
+    writable (a temp file beside it), and no other render writing the set now
+    (`output_lock`). Each failure is one line naming the path (`ValueError` for a malformed
+    path, `OutputError` otherwise)."""
+    if not str(out_path).strip():
+        raise ValueError("out: empty; name an .exr file")
+    paths = _set_paths(out_path)
+    for p in paths:
+        if os.path.isdir(p):
+            raise OutputError(f"{p}: is a directory, not a file to write")
+    d = os.path.dirname(os.path.abspath(paths[0]))
+    up = d
+    while up and not os.path.exists(up):
+        up = os.path.dirname(up)
+    if up and not os.path.isdir(up):
+        raise OutputError(f"{out_path}: cannot write: {up} is not a directory")
+    if os.path.isdir(d):
+        check_writable(paths[0])
+        with output_lock(paths[0]):
+            pass
+
+
+def _lock_path(out_path: str) -> str:
+    d, name = os.path.split(os.path.abspath(os.fspath(out_path)))
+    return os.path.join(d, f".{name}.lock")
+
+
+def _remove_stale_lock(out_path: str) -> bool:
+    """Remove the lock file of `out_path` if no process holds it (a killed render's); one
+    that is held (by another render, or by this process's own `output_lock`: flock locks
+    belong to open files, so a second open of it here cannot take it) stays."""
+    lp = _lock_path(out_path)
+    try:
+        fd = os.open(lp, os.O_RDWR)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return False
+    try:
+        os.unlink(lp)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def output_lock(out_path: str):
+    """Hold the output set of `out_path` for one render: a second render (another process)
+    to the same set is refused in one line (`OutputError`) instead of overwriting it. An
+    advisory `flock` on a hidden lock file beside it: the system releases it when the
+    holder exits or is killed, so a killed render never leaves the set locked (only the
+    empty lock file, which the next render takes over and removes)."""
+    lp = _lock_path(out_path)
+    try:
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o666 & ~_UMASK)
+    except OSError as e:
+        raise OutputError(f"{out_path}: cannot write: {e.strerror or e}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise OutputError(f"{out_path}: another render is writing this output set "
+                              f"now (it holds {lp})") from None
+        try:
+            yield
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(lp)
+    finally:
+        os.close(fd)
 
 
 def _fsync_file(path: str) -> None:
@@ -384,7 +464,7 @@ def _stale_temps(path: str) -> list[str]:
 
 def recover_outputs(out_path: str) -> list[str]:
     """Make the set at `out_path` consistent after a killed writer, and tidy up: remove the
-    temp files of dead processes, and if the PNG or JSON is not the one for the EXR (a kill
+    temp files and the lock file (`output_lock`) of dead processes, and if the PNG or JSON is not the one for the EXR (a kill
     between the renames), rewrite both from the record in the EXR's header. Returns what
     was done, one line each (empty when nothing was needed)."""
     p_exr, p_png, p_json = _set_paths(out_path)
@@ -394,6 +474,8 @@ def recover_outputs(out_path: str) -> list[str]:
             with contextlib.suppress(OSError):
                 os.unlink(t)
                 done.append(f"removed {t}")
+    if _remove_stale_lock(p_exr):
+        done.append(f"removed {_lock_path(p_exr)}")
     if os.path.isfile(p_exr) and check_outputs(p_exr):
         meta = _exr_record(p_exr)
         if meta is not None:

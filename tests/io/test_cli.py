@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -92,6 +93,68 @@ def test_bad_arguments_one_line(args, capsys, tmp_path, monkeypatch):
     assert rc == 2
     assert _one_line(err).startswith("jaxvcm: error: ")
     assert not list(tmp_path.iterdir())
+
+
+def _setup_out(kind: str, d: Path) -> str:
+    """An --out of each bad kind, made in d; the expected start of its message."""
+    if kind == "empty":
+        return ""
+    if kind == "dir":
+        (d / "x.exr").mkdir()
+        return "x.exr"
+    if kind == "under-file":
+        (d / "f").write_text("")
+        return "f/x.exr"
+    raise AssertionError(kind)
+
+
+@pytest.mark.parametrize("kind,msg", [
+    ("empty", "--out: empty"), ("dir", "x.exr: is a directory"),
+    ("under-file", "f/x.exr: cannot write: "),
+], ids=["empty", "dir", "under-file"])
+def test_bad_out_refused_before_any_work(kind, msg, capsys, tmp_path, monkeypatch):
+    # every output path is checked before the scene is even loaded (the scene named here
+    # does not exist: a check after loading would report the scene instead)
+    monkeypatch.chdir(tmp_path)
+    out = _setup_out(kind, tmp_path)
+    rc = main(["render", "does/not/exist.toml", "--out", out, "--passes", "1"])
+    _, err = capsys.readouterr()
+    assert rc == 2 and _one_line(err).startswith(f"jaxvcm: error: {msg}"), err
+
+
+def test_second_render_to_a_held_out_is_refused(capsys, tmp_path, monkeypatch):
+    # a render holds its output set (an flock the system drops with the process): another
+    # to the same --out is refused in one line, before any work; once released, it is free
+    monkeypatch.chdir(tmp_path)
+    with _io.output_lock(str(tmp_path / "x.exr")):
+        rc = main(["render", "does/not/exist.toml", "--out", "x.exr", "--passes", "1"])
+        _, err = capsys.readouterr()
+        assert rc == 2 and "another render is writing this output set" in _one_line(err)
+        with pytest.raises(_io.OutputError, match="another render"):  # in-process too
+            with _io.output_lock(str(tmp_path / "x.exr")):
+                pass
+    assert not list(tmp_path.iterdir())  # the lock file goes with the lock
+    rc = main(["render", "does/not/exist.toml", "--out", "x.exr", "--passes", "1"])
+    _, err = capsys.readouterr()
+    assert rc == 2 and "does/not/exist.toml" in err  # past the output checks
+
+
+@pytest.mark.parametrize("out,msg", [("", "--out: empty"), ("f/sub", "--out: 'f/sub': ")],
+                         ids=["empty", "under-file"])
+def test_fit_out_checked_before_the_fit(out, msg, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "f").write_text("")
+    cfg = ROOT / "fits" / "recover_rgb" / "fit.toml"
+    rc = main(["fit", str(cfg), "--out", out, "--quiet"])
+    _, err = capsys.readouterr()
+    assert rc == 2 and _one_line(err).startswith(f"jaxvcm: error: {msg}"), err
+
+
+def test_version(capsys):
+    import jaxvcm
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"jaxvcm {jaxvcm.__version__}"
 
 
 def test_bench_missing_or_delegated(capsys, monkeypatch, tmp_path):
@@ -257,9 +320,10 @@ def _wait_for(proc, path: Path, log: Path, timeout=90.0):
 
 def _check_dir_after_kill(d: Path, name="pool"):
     assert _visible(d) == {f"{name}.exr", f"{name}.png", f"{name}.json"}
-    for p in d.iterdir():  # an orphaned temp file may remain, but never under a real name
-        if p.name.startswith("."):
-            assert ".tmp" in p.name and not p.name.endswith((".exr", ".png", ".json"))
+    for p in d.iterdir():  # an orphaned temp file may remain, but never under a real name;
+        if p.name.startswith("."):  # and a killed render's (released) lock file
+            assert (".tmp" in p.name and not p.name.endswith((".exr", ".png", ".json"))
+                    or p.name == f".{name}.exr.lock"), p.name
 
 
 def test_render_sigkill_leaves_snapshot(tmp_path):
@@ -308,8 +372,109 @@ def test_render_sigint_exits_130_with_snapshot(tmp_path):
     log.unlink()
     _check_dir_after_kill(tmp_path)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # cleaned up
-    _check_outputs(out, snapshot=True)
-    assert _io.check_outputs(str(out)) == []  # SIGINT is held back: the set is whole
+    # the set on disk is the interrupted render's own, of every pass it did (not the last
+    # snapshot's); SIGINT is held back while it is written: the set is whole
+    assert _check_outputs(out, snapshot=False)["interrupted"] == "SIGINT"
+    assert _io.check_outputs(str(out)) == []
+
+
+def _start_plain_render(out: Path, log: Path):
+    """`_start_render` without snapshots: nothing is on disk until the render ends."""
+    args = [sys.executable, "-m", "jaxvcm.cli", "render", POOL, *TINY, "--algorithm", "pt",
+            "--time", "120", "--snapshot-every", "1e9", "--out", str(out)]
+    return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=open(log, "w"),
+                            env=_env(), cwd=out.parent,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def _passes_shown(log: Path) -> int:
+    done = re.findall(r"render: (\d+) passes", log.read_text())
+    return int(done[-1]) if done else 0
+
+
+def _stop(proc, sig, log: Path) -> int:
+    proc.send_signal(sig)
+    try:
+        return proc.wait(timeout=150)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        pytest.fail(f"no exit 150 s after {sig!r}: {log.read_text()}")
+
+
+@pytest.mark.parametrize("sig,status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
+                         ids=["sigint", "sigterm"])
+def test_render_signal_keeps_the_passes_it_has(tmp_path, sig, status):
+    # no snapshot is due (one every 1e9 s): the image set on disk after the signal is the
+    # one the interrupted render writes of its own passes, at least the ones shown before
+    # the signal; exit 128 + the signal's number, one line saying what was kept
+    out, log = tmp_path / "pool.exr", tmp_path / "log.txt"
+    proc = _start_plain_render(out, log)
+    try:
+        t0 = time.monotonic()
+        while _passes_shown(log) < 2:
+            if proc.poll() is not None:
+                pytest.fail(f"render exited with {proc.returncode}: {log.read_text()}")
+            if time.monotonic() - t0 > 90:
+                pytest.fail(f"no pass after 90 s: {log.read_text()}")
+            time.sleep(0.05)
+        assert not out.exists()
+        shown = _passes_shown(log)
+        rc = _stop(proc, sig, log)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    err = log.read_text()
+    assert rc == status, err
+    last = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()][-1]
+    name = signal.Signals(sig).name
+    assert re.fullmatch(rf"jaxvcm: interrupted \({name}\) after \d+ passes: .*pool\.exr",
+                        last), err
+    assert "Traceback" not in err
+    log.unlink()
+    _check_dir_after_kill(tmp_path)
+    meta = _check_outputs(out, snapshot=False)
+    assert meta["passes"] >= shown and meta["interrupted"] == name
+    assert f"after {meta['passes']} passes" in last
+    assert _io.check_outputs(str(out)) == []
+
+
+def test_render_signals_at_random_moments_are_never_lost(tmp_path):
+    # SIGINT at random moments once the command runs (compiling, mid-pass, writing; before
+    # that, Python is still importing jax and its own handler applies): the render always
+    # ends, 130, with either nothing written (before its first pass) or a whole set of the
+    # passes it had; never a run to the time limit (a lost signal)
+    rng = np.random.default_rng(7)
+    for k, delay in enumerate(rng.uniform(0.0, 6.0, 3)):
+        d = tmp_path / f"r{k}"
+        d.mkdir()
+        out, log = d / "pool.exr", d / "log.txt"
+        proc = _start_plain_render(out, log)
+        try:
+            t0 = time.monotonic()
+            while "render: " not in log.read_text():
+                if proc.poll() is not None or time.monotonic() - t0 > 90:
+                    pytest.fail(f"render not started ({proc.poll()}): {log.read_text()}")
+                time.sleep(0.02)
+            time.sleep(delay)
+            if proc.poll() is not None:
+                pytest.fail(f"render exited with {proc.returncode}: {log.read_text()}")
+            t0 = time.monotonic()
+            rc = _stop(proc, signal.SIGINT, log)
+            assert time.monotonic() - t0 < 60, log.read_text()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        err = log.read_text()
+        assert rc == 130, err
+        assert "Traceback" not in err
+        if out.exists():
+            assert _check_outputs(out, snapshot=False)["interrupted"] == "SIGINT"
+            assert _io.check_outputs(str(out)) == []
+        else:
+            assert "nothing written" in err, err
 
 
 # ------------------------------------------------------------------ export / info

@@ -113,8 +113,9 @@ def test_progressive_recovers_first(tmp_path):
 
     progressive(run_pass, lambda m: m, lambda *a: {"passes": a[0]}, passes=1, out=str(out),
                 progress=False)
-    assert seen == [([], [])]
+    assert seen == [([], [".snap.exr.lock"])]  # only the render's own lock (held)
     assert _io.check_outputs(str(out)) == []
+    assert _temps(tmp_path) == []  # and it goes with the render
 
 
 def test_live_writer_temps_are_kept(tmp_path):

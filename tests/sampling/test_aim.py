@@ -145,14 +145,14 @@ def test_aim_bad_input_names_the_field():
 
 
 # ---------------------------------------------------------------- (2) closed forms, aimed
-@pytest.mark.parametrize("aim", [0.0, 0.9], ids=["off", "aimed"])
 @pytest.mark.parametrize("alg", ["ppm", "vcm"])
-def test_aimed_merging_renders_the_refracted_sun_seen_from_above(alg, aim):
+def test_aimed_merging_renders_the_refracted_sun_seen_from_above(alg):
     # tests/merge/test_merge.py's scene and value (camera 0.6 m above flat water looking down at
     # the sunlit floor: E[L] = T0 / eta^2 e^{-sigma_a d} L_f), 90 % of the photons aimed at
-    # the footprint or none (the same standard-error bar: 4x the paths without aiming).
-    sc = _aimed(S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=20.0), aim)
-    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.05, spp=8 if aim else 32)
+    # the footprint (the same standard-error bar as the unaimed twin there, which needs 4x the
+    # paths at this narrower field of view).
+    sc = _aimed(S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=20.0), 0.9)
+    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.05, spp=8)
     imgs = []
     for i in range(64):
         img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(0, i), cfg, i)
