@@ -148,7 +148,7 @@ def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
     _, rb = bounding_sphere(scene)
     r = radius_pixels * fp / float(rb) if math.isfinite(fp) else RenderConfig.radius
     # not below what the hash grid resolves at the scene's extent for `horizon` passes of
-    # the progressive schedule (`_merge.check_precise`; the grid's radius shrinks as
+    # the progressive schedule (`_merge.pass_radius`'s floor; the grid's radius shrinks as
     # i^((alpha - 1) / 3)): in float32 a 120 m pool resolves >= 2.2 cm
     r_min, _ = merge.precise_radius(scene)
     floor = r_min * 1.01 * horizon ** ((1.0 - alpha) / 3.0) / float(rb)

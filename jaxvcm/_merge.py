@@ -52,18 +52,39 @@ def pass_radius(cfg: RenderConfig, scene: Scene, pass_index) -> Radii:
         surfaces  r_i = r_1 i^((alpha - 1) / 2)   (2-D density estimate),
         medium    r_i = r_1 i^((alpha - 1) / 3)   (3-D: the variance of a sphere kernel
                   grows as r^-3, so the radius shrinks more slowly for the same alpha),
-    r_1 = `cfg.radius` times the scene's bounding radius. The pass index alone drives the
-    schedule, so resumed and sharded renders agree."""
+    r_1 = `cfg.radius` times the scene's bounding radius, neither below the smallest radius
+    the hash grid resolves in the scene's float dtype at the scene's extent
+    (`resolvable_radius`): a schedule that reaches it stays there (the render goes on, its
+    merging bias no longer shrinks; the host driver says so once, `radius_floor_note`). The
+    pass index alone drives the schedule, so resumed and sharded renders agree."""
     _, rb = bounding_sphere(scene)
     i = jnp.asarray(pass_index, rb.dtype) + 1.0
     r1 = cfg.radius * rb
-    return Radii(jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 2.0)),
-                 jax.lax.stop_gradient(r1 * i ** ((cfg.alpha - 1.0) / 3.0)))
+    floor = FLOOR_MARGIN * resolvable_radius(scene)
+    return Radii(jax.lax.stop_gradient(jnp.maximum(r1 * i ** ((cfg.alpha - 1.0) / 2.0), floor)),
+                 jax.lax.stop_gradient(jnp.maximum(r1 * i ** ((cfg.alpha - 1.0) / 3.0), floor)))
+
+
+FLOOR_MARGIN = 1.01  # the floor a little above the grid's limit (its float rounding)
+
+
+def resolvable_radius(scene: Scene) -> Array:
+    """The smallest merging radius (metres, traced) that the hash grid resolves in the
+    scene's float dtype for every point of the scene's box: `_hashgrid.build`'s `precise`
+    condition, |coordinate| + span within CELL_MARGIN / (32 u) cells of 2 r (1 +
+    CELL_MARGIN), with the box's largest |coordinate| + span (`precise_radius` on the host
+    in float64)."""
+    lo, hi = scene.bounds[0], scene.bounds[1]
+    span = jnp.max(jnp.maximum(jnp.abs(lo), jnp.abs(hi)) + (hi - lo))
+    u = float(np.finfo(np.dtype(scene.bounds.dtype)).eps) / 2
+    cells = hashgrid.CELL_MARGIN / (32.0 * u) - 2.0
+    return jax.lax.stop_gradient(span / (cells * 2.0 * (1.0 + hashgrid.CELL_MARGIN)))
 
 
 def precise_radius(scene: Scene) -> tuple[float, float]:
     """(smallest merging radius in metres the hash grid resolves in the scene's float dtype
-    at the scene's extent, that extent |coordinate| + span in metres): `check_precise`."""
+    at the scene's extent, that extent |coordinate| + span in metres): the host's float64
+    `resolvable_radius`."""
     lo, hi = (np.asarray(b, np.float64) for b in np.asarray(scene.bounds))
     span = float(np.max(np.maximum(np.abs(lo), np.abs(hi)) + (hi - lo)))
     u = float(np.finfo(np.dtype(scene.bounds.dtype)).eps) / 2
@@ -71,28 +92,27 @@ def precise_radius(scene: Scene) -> tuple[float, float]:
     return span / (cells * 2.0 * (1.0 + hashgrid.CELL_MARGIN)), span
 
 
-def check_precise(scene: Scene, cfg: RenderConfig, pass_index) -> None:
-    """Host side, before a pass: raise a one-line ValueError naming `config.radius` if the
-    hash grid cannot resolve pass `pass_index`'s merging radius in the scene's float dtype
-    at the scene's extent (`_hashgrid.build`'s `precise` condition: |coordinate| + span
-    within CELL_MARGIN / (32 u) cells of 2 r (1 + CELL_MARGIN), bounded here by the scene's
-    box, which holds every photon and gather point). A radius below it would make the grid
-    miss neighbours silently; a float64 scene (`load_scene(..., dtype=jnp.float64)`)
-    resolves ~10^8 times smaller radii. No merging: nothing to check."""
-    if cfg.techniques.merging is None:
-        return
+def radius_floor_note(scene: Scene, cfg: RenderConfig, passes: int) -> str | None:
+    """Host side: the one-line warning of a render of `passes` passes whose radius schedule
+    reached the hash grid's limit in the scene's float dtype (`pass_radius` keeps it there),
+    or None (also without merging). A float64 scene
+    (`load_scene(..., dtype=jnp.float64)`) resolves ~10^8 times smaller radii."""
+    if cfg.techniques.merging is None or passes < 1:
+        return None
     r_min, span = precise_radius(scene)
     lo, hi = (np.asarray(b, np.float64) for b in np.asarray(scene.bounds))
     rb = 0.5 * float(np.linalg.norm(hi - lo))
-    i = float(np.max(np.asarray(pass_index))) + 1.0
-    r = cfg.radius * rb * i ** ((cfg.alpha - 1.0) / 3.0)  # the grid's (the larger) radius
-    if not r > r_min:
-        raise ValueError(
-            f"config.radius: pass {int(i)}'s merging radius {r:.3g} m is below what the hash "
-            f"grid resolves in {np.dtype(scene.bounds.dtype).name} at this scene's extent "
-            f"({span:.3g} m): it needs >= {r_min:.3g} m (a first-pass radius >= "
-            f"{r_min / rb * i ** ((1.0 - cfg.alpha) / 3.0):.3g}); use a larger radius or a "
-            f"float64 scene")
+    r1 = cfg.radius * rb
+    r = r1 * float(passes) ** ((cfg.alpha - 1.0) / 2.0)  # the last pass's surface radius
+    if r > FLOOR_MARGIN * r_min:
+        return None
+    first = r1 <= FLOOR_MARGIN * r_min
+    when = ("from the first pass" if first else
+            f"from pass {int(math.ceil((FLOOR_MARGIN * r_min / r1) ** (2.0 / (cfg.alpha - 1.0))))}")
+    return (f"config.radius: the merging radius stayed at {FLOOR_MARGIN * r_min:.3g} m, what "
+            f"the hash grid resolves in {np.dtype(scene.bounds.dtype).name} at this scene's "
+            f"extent ({span:.3g} m), {when}: the merging bias stopped shrinking there; a "
+            f"float64 scene resolves smaller radii")
 
 
 def log_etas(radius, n_paths, dtype):

@@ -42,7 +42,8 @@ class Diagnostics(eqx.Module):
     merge_photons: Array  # valid photons (of the largest chunk): the photon room needed
     merge_imprecise: Array  # the hash grid could not resolve the merging radius in the
     # scene's float dtype at the photons' coordinates (neighbours may have been missed: the
-    # pass is wrong; host drivers refuse such a radius first, `_merge.check_precise`)
+    # pass is wrong; the radius's floor, `_merge.pass_radius`, keeps it from happening
+    # inside the scene's box)
 
 
 def render_pass(scene: Scene, key: PRNGKeyArray, config: RenderConfig = RenderConfig(),
@@ -87,15 +88,15 @@ def with_retry(jitted_pass, scene, key, config: RenderConfig, pass_index,
     two that holds the longest candidate list the pass reported, at least twice the old
     one; the photon room at least doubles and holds the photons with a margin
     (`_merge.more_room`), so one re-run (one new compiled program) is enough. Returns
-    (estimate, diagnostics, the config that had room). Before it, a merging radius the
-    hash grid cannot resolve at the scene's scale is a one-line error
-    (`_merge.check_precise`), never a silent miss."""
-    _merge.check_precise(geometry, config, pass_index)
+    (estimate, diagnostics, the config that had room). The merging radius never goes below
+    what the hash grid resolves at the scene's scale (`_merge.pass_radius`), so the grid's
+    `precise` flag can trip only for photons outside the scene's box: an error, never a
+    silent miss."""
     while True:
         est, diag = jitted_pass(scene, key, config, pass_index)
         d = core(diag)
-        if bool(np.any(d.merge_imprecise)):  # the grid's own flag, behind check_precise:
-            # check_precise bounded the photons by the scene's box: they were outside it
+        if bool(np.any(d.merge_imprecise)):  # the grid's own flag: the radius's floor
+            # holds for the scene's box, so the photons were outside it
             raise ValueError(f"config.radius: the hash grid could not resolve pass "
                              f"{int(np.max(np.asarray(pass_index))) + 1}'s merging radius at "
                              f"the photons' coordinates (photons outside the scene's box); "
@@ -187,8 +188,8 @@ def _progressive(run_pass, to_image, meta, passes, time, out, snapshot_every, pr
     bar.start()
 
     def record(n, seconds, image, snapshot):
-        m = meta(n, seconds, nonfinite, snapshot)
-        return {**m, "warnings": render_warnings(image, nonfinite)}
+        m = dict(meta(n, seconds, nonfinite, snapshot))
+        return {**m, "warnings": render_warnings(image, nonfinite) + m.pop("warnings", [])}
 
     def mean():
         s = acc
@@ -338,8 +339,10 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
         return n, int(np.sum(np.asarray(diag.nonfinite)[valid]))
 
     def meta(n, seconds, nonfinite, snapshot):
+        note = _merge.radius_floor_note(scene, state["config"], n)
         return {**_meta(scene, scene_path, state["config"], n, seconds, seed, nonfinite,
-                        snapshot), "devices": G, "processes": _hosts.count()}
+                        snapshot), "devices": G, "processes": _hosts.count(),
+                "warnings": [note] if note else []}
 
     mean, _, _ = progressive(run_pass, lambda m: m, meta, passes=passes, time=time, out=out,
                              snapshot_every=snapshot_every, progress=progress,
