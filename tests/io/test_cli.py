@@ -353,17 +353,9 @@ def test_render_sigint_exits_130_with_snapshot(tmp_path):
     try:
         _wait_for(proc, out, log)
         time.sleep(1.0)
-        proc.send_signal(signal.SIGINT)
-        try:
-            rc = proc.wait(timeout=150)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-            pytest.fail(f"no exit 150 s after SIGINT: {log.read_text()}")
+        rc = _stop(proc, signal.SIGINT, log)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        _reap(proc)
     err = log.read_text()
     assert rc == 130, err
     last = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()][-1]
@@ -390,6 +382,12 @@ def _start_plain_render(out: Path, log: Path):
 def _passes_shown(log: Path) -> int:
     done = re.findall(r"render: (\d+) passes", log.read_text())
     return int(done[-1]) if done else 0
+
+
+def _reap(proc) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
 
 
 def _stop(proc, sig, log: Path) -> int:
@@ -422,9 +420,7 @@ def test_render_signal_keeps_the_passes_it_has(tmp_path, sig, status):
         shown = _passes_shown(log)
         rc = _stop(proc, sig, log)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        _reap(proc)
     err = log.read_text()
     assert rc == status, err
     last = [ln for ln in err.replace("\r", "\n").splitlines() if ln.strip()][-1]
@@ -464,9 +460,7 @@ def test_render_signals_at_random_moments_are_never_lost(tmp_path):
             rc = _stop(proc, signal.SIGINT, log)
             assert time.monotonic() - t0 < 60, log.read_text()
         finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+            _reap(proc)
         err = log.read_text()
         assert rc == 130, err
         assert "Traceback" not in err
