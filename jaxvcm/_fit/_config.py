@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import math
 import os
+import re
 
 import numpy as np
 
 from .._config import ALGORITHMS, MAX_DEPTH, RenderConfig
-from .._io._scene_file import _Ctx, scene_from_dict
+from .._io._scene_file import SceneError, _Ctx, scene_from_dict
 from .._io._schema import IOR, MAX_PIXELS
 from .._io._toml import Range, key_path, read_toml
 from .._spectral._scene import MAX_WAVELENGTHS
@@ -74,6 +75,23 @@ def _deep_merge(base: dict, over: dict) -> dict:
     return out
 
 
+def _overrides(ov: dict, field: str) -> bool:
+    """Whether the override table `ov` sets the scene field `field` ("a.b[2].c") or a table
+    or array above it."""
+    node = ov
+    for part in re.findall(r"[^.\[\]]+|\[\d+\]", field):
+        if part.startswith("["):
+            i = int(part[1:-1])
+            if not isinstance(node, list) or i >= len(node):
+                return False
+            node = node[i]
+        elif isinstance(node, dict) and part in node:
+            node = node[part]
+        else:
+            return False
+    return True
+
+
 def load_fit_config(path) -> dict:
     """Parse and validate a fit config -> keyword arguments of `fit` (scenes loaded).
     A spectral config (mode = "spectral") gives the keyword arguments of
@@ -86,6 +104,9 @@ def load_fit_config(path) -> dict:
 
     ctx = Ctx(src)
     doc = read_toml(src, FitConfigError)
+    if "scenes" not in doc and ("camera" in doc or "lights" in doc):
+        raise FitConfigError(f"{src}: a scene file, not a fit config (a fit config names "
+                             "its scenes in [scenes.NAME] and its targets in [[regions]])")
     mode = ctx.string(doc.get("mode", "rgb"), "mode", ("rgb", "spectral"))
     spectral = mode == "spectral"
     top = {"mode", "space", "render", "solver", "init", "truth", "scenes", "regions"}
@@ -156,7 +177,13 @@ def load_fit_config(path) -> dict:
         ov = e.get("override", {})
         if not isinstance(ov, dict):
             ctx.fail(f"{sf}.override", "expected a table")
-        scene = scene_from_dict(_deep_merge(sdoc, ov), fshow, width=width, height=height)
+        try:
+            scene = scene_from_dict(_deep_merge(sdoc, ov), fshow, width=width, height=height)
+        except SceneError as err:  # a field the override set: name the override
+            field, _, msg = str(err).removeprefix(f"{fshow}: ").partition(": ")
+            if not msg or not _overrides(ov, field):
+                raise
+            ctx.fail(f"{sf}.override.{field}", msg)
         if not scene.water.enabled:
             ctx.fail(sf, "the scene has no water to fit")
         scenes[name] = scene

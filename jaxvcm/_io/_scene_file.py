@@ -72,7 +72,9 @@ def read_scene_doc(src: str, _chain: tuple = ()) -> dict:
             ctx.fail(f, f"{name!r} is this file or one of its bases (a cycle)")
         if len(chain) >= MAX_BASES:
             ctx.fail(f, f"more than {MAX_BASES} files in a chain of bases")
-        if not os.path.isfile(path):
+        if os.path.isdir(path):
+            ctx.fail(f, f"is a directory, not a TOML file: {path}")
+        if not os.path.exists(path):
             ctx.fail(f, f"file not found: {path}")
         merged = merge_docs(merged, read_scene_doc(path, chain))
     return merge_docs(merged, doc)

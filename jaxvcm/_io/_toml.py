@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import stat
 import tomllib
 from typing import Any
 
@@ -136,19 +138,35 @@ def _decode_error(e: UnicodeDecodeError) -> str:
             f"{e.start}); TOML files must be UTF-8")
 
 
+MAX_FILE_BYTES = 16 << 20  # a scene or fit file is a few kB; read no more than this
+
+
 def read_toml(src: str, error: type[Exception] = SceneError) -> dict:
     """The parsed TOML document at `src`. Anything that keeps it from being read (missing
-    file, a directory, no permission, not UTF-8, a syntax error, nesting too deep for the
-    parser) is an `error` (default `SceneError`) whose one line names `src`."""
+    file, a directory, a device or FIFO, more than `MAX_FILE_BYTES`, no permission, not
+    UTF-8, a syntax error, nesting too deep for the parser) is an `error` (default
+    `SceneError`) whose one line names `src`. A leading UTF-8 byte-order mark is skipped."""
     try:
+        st = os.stat(src)  # before opening: opening a FIFO would block
+        if stat.S_ISDIR(st.st_mode):
+            raise IsADirectoryError
+        if not stat.S_ISREG(st.st_mode):
+            raise error(f"{src}: not a regular file (a device, FIFO or socket)")
+        if st.st_size > MAX_FILE_BYTES:
+            raise error(f"{src}: {st.st_size} bytes, more than a scene file's "
+                        f"{MAX_FILE_BYTES} (is it the right file?)")
         with open(src, "rb") as f:
-            data = f.read()
+            data = f.read(MAX_FILE_BYTES + 1)
     except FileNotFoundError:
         raise error(f"{src}: file not found") from None
     except IsADirectoryError:
         raise error(f"{src}: is a directory, not a TOML file") from None
     except OSError as e:
         raise error(f"{src}: cannot read: {e.strerror or e}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise error(f"{src}: more than a scene file's {MAX_FILE_BYTES} bytes")
+    if data.startswith(b"\xef\xbb\xbf"):  # a UTF-8 byte-order mark (some editors write
+        data = data[3:]                     # one): not part of the document
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:

@@ -31,7 +31,7 @@ from hypothesis import strategies as st
 import jaxvcm
 from jaxvcm import SceneError
 from jaxvcm.cli import main
-from jaxvcm._io._toml import read_toml
+from jaxvcm._io._toml import MAX_FILE_BYTES, read_toml
 
 ROOT = Path(__file__).resolve().parents[2]
 POOL = ROOT / "scenes" / "pool.toml"
@@ -263,6 +263,34 @@ def test_directory_as_scene(tmp_path, capsys):
         read_toml(str(tmp_path))
 
 
+def test_byte_order_mark_is_skipped(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + POOL.read_bytes())
+    assert read_toml(str(p)) == read_toml(str(POOL))
+
+
+def test_special_and_huge_files_one_line(tmp_path, capsys):
+    # a FIFO (opening it would block), a device, a file past the size cap: one line each,
+    # at once
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.toml"
+    with open(big, "wb") as f:
+        f.truncate(MAX_FILE_BYTES + 1)
+    for path, what in ((fifo, "not a regular file"), ("/dev/zero", "not a regular file"),
+                       (big, f"more than a scene file's {MAX_FILE_BYTES}")):
+        line = _cli_error(["info", str(path)], capsys)
+        assert line.startswith(f"jaxvcm: error: {path}: ") and what in line, line
+
+
+def test_base_naming_a_directory_one_line(tmp_path, capsys):
+    (tmp_path / "d").mkdir()
+    p = tmp_path / "s.toml"
+    p.write_text('base = "d"\n' + POOL.read_text())
+    line = _cli_error(["info", str(p)], capsys)
+    assert line.startswith(f"jaxvcm: error: {p}: base: is a directory"), line
+
+
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs /proc")
 @pytest.mark.parametrize("args,out", [
     (["render", str(POOL), "--passes", "1", "--out", "/proc/x.exr"], "/proc/x.exr"),
@@ -312,8 +340,15 @@ height = 8
 def test_fit_override_errors(override, field, tmp_path, capsys):
     cfg = _fit_config(tmp_path, override)
     line = _cli_error(["fit", str(cfg), "--out", str(tmp_path / "o")], capsys)
-    assert line.startswith("jaxvcm: error: ") and f": {field}: " in line, line
+    # named as the fit config's override, where the value was written
+    assert line.startswith(f"jaxvcm: error: {cfg}: scenes.a.override.{field}: "), line
     assert not (tmp_path / "o").exists()
+
+
+def test_scene_file_given_to_fit(capsys):
+    line = _cli_error(["fit", str(POOL)], capsys)
+    assert line == (f"jaxvcm: error: {POOL}: a scene file, not a fit config (a fit config "
+                    "names its scenes in [scenes.NAME] and its targets in [[regions]])"), line
 
 
 def test_fit_config_not_utf8(tmp_path, capsys):
