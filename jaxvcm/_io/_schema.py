@@ -51,6 +51,7 @@ REL_SIZE = 1e-6  # 16 float32 ulps of the scene's extent: smaller shapes are not
 DIRECTION = Range(-MAX_LENGTH, MAX_LENGTH)  # components; normalised, must be non-zero
 ANY = Range(-MAX_LENGTH, MAX_LENGTH)  # a number without its own range
 FOV = Range(0.01, 179.0, "degrees")
+MAX_FILE_BYTES = 16 << 20  # a scene or fit file is a few kB; none is read past this
 MAX_PIXELS = 16384  # per side: a 16384^2 float32 RGB film is 3.2 GB
 PIXELS = Range(1, MAX_PIXELS)
 ALBEDO = Range(0.0, 1.0)  # materials and emitters alike (energy conservation)
@@ -497,6 +498,8 @@ _INTRO = f"""\
 
 A scene is one UTF-8 [TOML](https://toml.io) file: `jaxvcm render scene.toml` renders it,
 `jaxvcm.load_scene("scene.toml")` loads it as a `Scene`. Lengths are in metres, y is up.
+The file must be a regular file of at most {MAX_FILE_BYTES >> 20} MiB (a leading UTF-8
+byte-order mark is skipped).
 This page is generated from the schema the loader validates against, so every field,
 range and default below is the one enforced.
 

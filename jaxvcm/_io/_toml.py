@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ._schema import ANY, CHANNELS, COORD, DIRECTION, MAX_LENGTH, REL_SIZE, SIZE, Range
+from ._schema import (ANY, CHANNELS, COORD, DIRECTION, MAX_FILE_BYTES, MAX_LENGTH, REL_SIZE,
+                      SIZE, Range)
 
 __all__ = ["ANY", "CHANNELS", "COORD", "DIRECTION", "MAX_LENGTH", "REL_SIZE", "SIZE", "Range",
            "SceneError", "key_path", "read_toml"]
@@ -136,9 +137,6 @@ class _Ctx:
 def _decode_error(e: UnicodeDecodeError) -> str:
     return (f"encoding: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset "
             f"{e.start}); TOML files must be UTF-8")
-
-
-MAX_FILE_BYTES = 16 << 20  # a scene or fit file is a few kB; read no more than this
 
 
 def read_toml(src: str, error: type[Exception] = SceneError) -> dict:
