@@ -101,22 +101,31 @@ def scene_from_dict(doc: dict, src: str = "<scene>", *, width=None, height=None,
             for field, a in parts.l_aim:
                 if a > 0 and not water["enabled"]:
                     ctx.fail(field, "aims at the water's footprint: the scene has no [water]")
-            bounds = _bounds(cam["pos"], parts, water)
-            _check_sizes(ctx, parts, bounds)
+            groups = _bound_points(cam["pos"], parts, water)
+            bounds = _box(groups)
+            _check_sizes(ctx, parts, bounds, groups)
             power = _light_power(parts, bounds)
         except FloatingPointError as e:  # pragma: no cover (no known case)
             ctx.fail("scene", f"a derived value is out of range ({e})")
     return _check_finite(ctx, _to_scene(cam, parts, water, bounds, power, name, dtype))
 
 
-def _check_sizes(ctx: _Ctx, parts: _Parts, bounds: np.ndarray) -> None:
+def _check_sizes(ctx: _Ctx, parts: _Parts, bounds: np.ndarray, groups) -> None:
     """Every shape at least REL_SIZE x the scene's extent: smaller ones are not resolved by
-    float32 positions at that scale (a 1e-308 m light would have area 0 and no normal)."""
+    float32 positions at that scale (a 1e-308 m light would have area 0 and no normal). The
+    message names what set the extent when one field alone did (a water level of 1e6 m
+    makes every light too small)."""
     extent = float(np.linalg.norm(bounds[1] - bounds[0]))
     for field, size in parts.sizes:
         if size < REL_SIZE * extent:
+            by = ""
+            for name, _ in groups:  # the field whose removal shrinks the extent 10x
+                rest = _box([g for g in groups if g[0] != name])
+                if float(np.linalg.norm(rest[1] - rest[0])) < 0.1 * extent:
+                    by = f", set by {name}"
+                    break
             ctx.fail(field, f"{size:g} m is below {REL_SIZE:g} x the scene's extent "
-                            f"({extent:g} m): too small to resolve in float32")
+                            f"({extent:g} m{by}): too small to resolve in float32")
 
 
 def _check_finite(ctx: _Ctx, scene: Scene) -> Scene:
@@ -129,22 +138,30 @@ def _check_finite(ctx: _Ctx, scene: Scene) -> Scene:
     return scene
 
 
-def _bounds(pos: np.ndarray, parts: _Parts, water: dict) -> np.ndarray:
-    """[2, 3] box around the camera, every shape, the point lights and the water volume."""
-    pts = [pos[None]]
-    for k, q in zip(parts.l_kind, parts.l_pos):
+def _bound_points(pos: np.ndarray, parts: _Parts, water: dict) -> list:
+    """The points the scene's box holds, as (the field that places them, [n, 3] points):
+    the camera, the point lights, every shape, the water volume's top and bottom."""
+    groups = [("camera.position", pos[None])]
+    for i, (k, q) in enumerate(zip(parts.l_kind, parts.l_pos)):
         if k == LIGHT_POINT:
-            pts.append(np.asarray(q, float)[None])
+            groups.append((f"lights[{i}].position", np.asarray(q, float)[None]))
     for p0, e1, e2 in zip(parts.rect_p0, parts.rect_e1, parts.rect_e2):
-        pts.append(np.array([p0, p0 + e1, p0 + e2, p0 + e1 + e2]))
+        groups.append(("shapes", np.array([p0, p0 + e1, p0 + e2, p0 + e1 + e2])))
     for cc, r in zip(parts.sph_c, parts.sph_r):
-        pts.append(np.array([cc - r, cc + r]))
+        groups.append(("shapes", np.array([cc - r, cc + r])))
     if water["enabled"]:
         fp = water["fp"]
         a = np.abs(water["waves"][:, 0]).sum()
-        pts.append(np.array([[fp[0], water["floor"], fp[2]],
-                             [fp[1], water["level"] + a, fp[3]]]))
-    pts = np.concatenate(pts)
+        groups.append(("water.floor", np.array([[fp[0], water["floor"], fp[2]],
+                                                [fp[1], water["floor"], fp[3]]])))
+        groups.append(("water.level", np.array([[fp[0], water["level"] + a, fp[2]],
+                                                [fp[1], water["level"] + a, fp[3]]])))
+    return groups
+
+
+def _box(groups) -> np.ndarray:
+    """[2, 3] box around the points of `_bound_points`' groups."""
+    pts = np.concatenate([p for _, p in groups])
     return np.stack([pts.min(0), pts.max(0)])
 
 

@@ -194,6 +194,19 @@ def test_reported_holes(field, value, expect):
     assert msg is not None and msg.startswith(f"{SRC}: {expect}: "), msg
 
 
+@pytest.mark.parametrize("field,value,culprit", [
+    (("water", "level"), 1e6, "water.level"),
+    (("camera", "position"), [1e6, 1.0, 0.0], "camera.position"),
+], ids=["water-level", "camera"])
+def test_extent_set_by_one_field_is_named(field, value, culprit):
+    # one far value makes the scene's extent huge and every light too small for float32
+    # there: the line names the small light and what set the extent
+    doc = copy.deepcopy(FULL)
+    _set(doc, field, value)
+    msg = _check_loaded_or_one_line(doc)
+    assert msg is not None and f"extent (1e+06 m, set by {culprit})" in msg, msg
+
+
 @pytest.mark.parametrize("ior", [1.0, 1.33, 3.0])
 def test_documented_ior_range_accepted(ior):
     # ior in [1, 3]: 1 is an index-matched boundary (the medium furnaces use it)
