@@ -59,6 +59,7 @@ from . import peer_mitsuba as _peer
 from . import spectral as _sp
 from . import aim_sweep as _as
 from . import wide_pool as _wp
+from . import scene_size as _ss
 from . import scaling as _sc
 from . import startup as _st
 from . import vertex_merging as _vm
@@ -252,6 +253,9 @@ def _parser() -> argparse.ArgumentParser:
                         "vcm+mnee; benchmarks/wide_pool.py)")
     g.add_argument("--wide-seconds", type=float, default=60.0, metavar="SEC",
                    help="seconds per algorithm of --wide-pool (60)")
+    g.add_argument("--scene-size", action="store_true",
+                   help="compile time, memory and pass time against the number of waves "
+                        "(1 to 1000) and lights (1 to 100) (benchmarks/scene_size.py)")
     g.add_argument("--scaling", action="store_true",
                    help="time and memory per pass from 64 k to 4 M paths (chunked), and 1 vs "
                         "2 forced CPU devices (first scene, default vcm, depth 8; "
@@ -852,6 +856,10 @@ def _settings(argv):
         if a.mode:
             raise _Usage(f"--wide-pool: not allowed with --{a.mode}")
         a.mode = "wide-pool"
+    if a.scene_size:
+        if a.mode:
+            raise _Usage(f"--scene-size: not allowed with --{a.mode}")
+        a.mode = "scene-size"
     if a.scaling:
         if a.mode:
             raise _Usage(f"--scaling: not allowed with --{a.mode}")
@@ -881,6 +889,7 @@ def _settings(argv):
                  "profile": list(PROFILE_DEFAULT_ALGORITHMS),
                  "startup": list(_st.DEFAULT_ALGORITHMS),
                  "scaling": ["vcm"],
+                 "scene-size": ["vcm"],
                  "scale-sweep": ["vcm", "ppm"],
                  "wide-pool": list(_wp.DEFAULT_ALGORITHMS),
                  "peer": ["pt"]}.get(a.mode, ["pt"])
@@ -898,6 +907,7 @@ def _settings(argv):
                    "profile": PROFILE_DEFAULT_SCENES,
                    "startup": PROFILE_DEFAULT_SCENES,
                    "scaling": PROFILE_DEFAULT_SCENES,
+                   "scene-size": PROFILE_DEFAULT_SCENES,
                    "peer": _peer.DEFAULT_SCENES}.get(a.mode, DEFAULT_SCENES)
     names = _split_list(a.scenes) if a.scenes else [str(Path("scenes") / s)
                                                      for s in mode_scenes]
@@ -1020,6 +1030,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "wide-pool":
             _wp.run_wide(a, argv, C.Log(a.quiet))
+            return 0
+        if a.mode == "scene-size":
+            _ss.run_scene_size(a, argv, a.scene_paths[0], C.Log(a.quiet))
             return 0
         if a.mode == "scaling":
             _sc.run_scaling(a, argv, a.scene_paths[0], C.Log(a.quiet))

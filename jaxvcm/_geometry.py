@@ -91,22 +91,40 @@ def intersect_spheres(s: Spheres, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, 
 
 
 # ---------------------------------------------------------------- water heightfield
-def water_height(w: Water, x, z, grad: bool = True):
-    """Surface height h(x, z) and its gradient (dh/dx, dh/dz), elementwise in x, z.
+WAVES_UNROLLED = 4  # waves per trip of `over_waves`' loop
 
-    The sum over the (static, few) waves is unrolled: every term is an elementwise op on
-    the batch, never a reduction over a short trailing axis (slow on CPU)."""
-    h = jnp.zeros_like(x) + w.level
-    hx = jnp.zeros_like(x)
-    hz = jnp.zeros_like(x)
-    for i in range(w.n_waves):
-        arg = w.kx[i] * x + w.kz[i] * z + w.phase0[i]
-        h = h + w.amp[i] * jnp.sin(arg)
-        if grad:
-            c = w.amp[i] * jnp.cos(arg)
-            hx = hx + w.kx[i] * c
-            hz = hz + w.kz[i] * c
-    return h, hx, hz
+
+def over_waves(w: Water, body, init):
+    """`init` carried through body(amp, kx, kz, phase, carry) once per wave, in a rolled
+    loop (`lax.fori_loop`): one copy of a wave's arithmetic in the compiled program
+    whatever the number of waves, so compile time and memory do not grow with it (a
+    wind-driven surface has hundreds). The carry is elementwise in the batch: every wave
+    updates it with elementwise ops, never a reduction over a short trailing axis."""
+    def step(i, c):
+        return body(w.amp[i], w.kx[i], w.kz[i], w.phase0[i], c)
+
+    if w.n_waves == 0:  # flat water (the body's gathers need a wave to trace)
+        return init
+    return jax.lax.fori_loop(0, w.n_waves, step, init, unroll=max(1, min(w.n_waves, WAVES_UNROLLED)))
+
+
+def water_height(w: Water, x, z, grad: bool = True):
+    """Surface height h(x, z) and its gradient (dh/dx, dh/dz), elementwise in x, z
+    (the sum over the waves in `over_waves`' rolled loop)."""
+    zero = jnp.zeros(jnp.broadcast_shapes(jnp.shape(x), jnp.shape(z)), jnp.result_type(x, z))
+    if not grad:
+        def height(a, kx, kz, ph, h):
+            return h + a * jnp.sin(kx * x + kz * z + ph)
+
+        return over_waves(w, height, zero + w.level), zero, zero
+
+    def wave(a, kx, kz, ph, c):
+        h, hx, hz = c
+        arg = kx * x + kz * z + ph
+        cs = a * jnp.cos(arg)
+        return h + a * jnp.sin(arg), hx + kx * cs, hz + kz * cs
+
+    return over_waves(w, wave, (zero + w.level, zero, zero))
 
 
 def water_normal(w: Water, x, z) -> Vec3:
@@ -127,13 +145,13 @@ STEEP_EXTRA_REFINE = 2  # Illinois steps added when the bracket is the whole box
 
 def _f_rounding(w: Water, o: Vec3, d: Vec3, t0, x0, z0):
     """A bound on the rounding of f(t0) = o_y + t0 d_y - h(x0, z0): below it, o is on the
-    surface. The waves' terms summed one by one, elementwise (as in `water_height`: not a
-    reduction over the short waves axis, which would be a kernel of its own on the CPU)."""
+    surface. The waves' terms sum_i |A_i| (1 + |kx_i x0| + |kz_i z0| + |phase_i|), as three
+    sums over the waves (scalars) times |x0|, |z0|: a constant-size program."""
     eps = jnp.finfo(o.x.dtype).eps
-    s = jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level)
-    for i in range(w.n_waves):
-        s = s + jnp.abs(w.amp[i]) * (1 + jnp.abs(w.kx[i] * x0) + jnp.abs(w.kz[i] * z0)
-                                     + jnp.abs(w.phase0[i]))
+    A = jnp.abs(w.amp)
+    s = (jnp.abs(o.y) + jnp.abs(t0 * d.y) + jnp.abs(w.level)
+         + jnp.sum(A * (1 + jnp.abs(w.phase0))) + jnp.abs(x0) * jnp.sum(A * jnp.abs(w.kx))
+         + jnp.abs(z0) * jnp.sum(A * jnp.abs(w.kz)))
     return 8 * eps * s
 
 
@@ -153,9 +171,7 @@ def steep(w: Water, d: Vec3) -> Array:
     sum |A_i| |k_i| >= |grad h|, so f(t) = o_y + t d_y - h(x(t), z(t)) is strictly
     monotone along the ray (f' = d_y - grad h . d_xz) and crosses zero at most once: the
     surface's box brackets the crossing without the march (1 % margin for rounding)."""
-    L = jnp.zeros((), d.x.dtype)
-    for i in range(w.n_waves):
-        L = L + jnp.abs(w.amp[i]) * jnp.sqrt(w.kx[i] * w.kx[i] + w.kz[i] * w.kz[i])
+    L = jnp.sum(jnp.abs(w.amp) * jnp.sqrt(w.kx * w.kx + w.kz * w.kz)).astype(d.x.dtype)
     return jnp.abs(d.y) > 1.01 * L * jnp.sqrt(d.x * d.x + d.z * d.z)
 
 

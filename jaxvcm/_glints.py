@@ -273,10 +273,8 @@ def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, esca
     water = scene.water
     dt = z0.x.dtype
     kinds = scene.lights.kind
-    is_area = jnp.zeros((), bool)
-    for k, kind in enumerate(kinds):
-        if kind in (LIGHT_RECT, LIGHT_SPHERE):
-            is_area = is_area | (light == k)
+    is_area = jnp.asarray([kind in (LIGHT_RECT, LIGHT_SPHERE) for kind in kinds])[
+        jnp.maximum(light, 0)] & (light >= 0)
     shape = ((j == 2) & ~escaped & is_area & (z1.kind == MAT_DIELECTRIC)
              & (z1.mat == water.mat))
     x0, z0_, seed_ok = seed(scene, pixel)

@@ -52,6 +52,42 @@ def selection_pdf(scene: Scene) -> Array:
     return jnp.where(total > 0, w / jnp.where(total > 0, total, 1.0), 1.0 / w.shape[0])
 
 
+class Group(NamedTuple):
+    """Lights that share one code path (static): one kind and one aim fraction."""
+
+    kind: int
+    aim: float
+    members: tuple[int, ...]
+
+
+def groups(scene: Scene) -> tuple[Group, ...]:
+    """The scene's lights grouped by (kind, aim fraction), in order of first appearance.
+    Every per-light evaluation below runs once per group, on the parameters of the group's
+    member at hand (`member`): the compiled program grows with the number of light kinds
+    (at most six), never with the number of lights."""
+    out: dict[tuple[int, float], list[int]] = {}
+    for k, kind in enumerate(scene.lights.kind):
+        out.setdefault((kind, aim_fraction(scene, k)), []).append(k)
+    return tuple(Group(kind, aim, tuple(m)) for (kind, aim), m in out.items())
+
+
+def member(scene: Scene, g: Group, light):
+    """(index, picked): the light to read group g's parameters at, and whether the traced
+    light index `light` belongs to g. A one-member group reads its member (a static index:
+    no gather); otherwise `light` itself, or the group's first member when `light` is not
+    in it (a genuine light of the kind, so the unpicked lanes compute finite values)."""
+    if len(g.members) == 1:
+        return g.members[0], light == g.members[0]
+    picked = jnp.asarray([k in g.members for k in range(scene.lights.count)])[light]
+    return jnp.where(picked, light, g.members[0]), picked
+
+
+def shape_of(scene: Scene, k):
+    """The rect / sphere index of light k (static k: a Python int)."""
+    shapes = scene.lights.shape
+    return shapes[k] if isinstance(k, int) else jnp.asarray(shapes, jnp.int32)[k]
+
+
 def rect_area(scene: Scene, i):
     return rect_frame(scene, i)[4]
 
@@ -77,11 +113,14 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
     up = Vec3(jnp.zeros((), dt), jnp.ones((), dt), jnp.zeros((), dt))
     out = LightSample(up, jnp.asarray(jnp.inf, dt), jnp.zeros((C,), dt), jnp.ones((), dt),
                       jnp.zeros((), bool), jnp.zeros((), bool), li, up)
-    # Static unrolled loop over the (few) lights: compute each, keep the selected one.
-    for k, kind in enumerate(lights.kind):
+    # One copy per group of lights (`groups`): compute it for the selected light's group
+    # member, keep the selected one.
+    for g in groups(scene):
+        kind = g.kind
+        k, pick = member(scene, g, li)
         Le = lights.radiance[k]
         if kind == LIGHT_RECT:
-            p0, e1, e2, nl, area = rect_frame(scene, lights.shape[k])
+            p0, e1, e2, nl, area = rect_frame(scene, shape_of(scene, k))
             q = p0 + e1 * u1 + e2 * u2
             dv = q - p
             d2 = vec.dot(dv, dv)
@@ -92,7 +131,7 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
             pdf = d2 / jnp.maximum(cos_l * area, 1e-30)
             s = LightSample(wi, dist, Le, pdf, jnp.zeros((), bool), valid, li, nl)
         elif kind == LIGHT_SPHERE:
-            r = lights.shape[k]
+            r = shape_of(scene, k)
             c = vec.from_array(scene.spheres.center[r])
             rad = scene.spheres.radius[r]
             dirn = sampling.uniform_sphere(u1, u2)
@@ -128,7 +167,6 @@ def sample_light(scene: Scene, p: Vec3, u_sel, u1, u2) -> LightSample:
                             jnp.zeros((), bool), jnp.ones((), bool), li, -wi)
         else:  # pragma: no cover
             raise ValueError(kind)
-        pick = li == k
         out = jax.tree.map(lambda a, b: jnp.where(pick, a, b), s, out)
     pdf_w = out.pdf_w * jnp.where(out.delta, 1.0, psel)
     # A delta light's "pdf" is the selection probability alone (the estimator divides by it).
@@ -148,19 +186,21 @@ def emitted_surface(scene: Scene, light_id, wo: Vec3, n: Vec3, dist) -> tuple[Ar
     Le = jnp.zeros((C,), dt)
     pdf = jnp.zeros((), dt)
     cos = vec.dot(wo, n)
-    for k, kind in enumerate(lights.kind):
+    for g in groups(scene):
+        kind = g.kind
+        if kind not in (LIGHT_RECT, LIGHT_SPHERE):
+            continue
+        k, pick = member(scene, g, lid)
         if kind == LIGHT_RECT:
-            area = rect_area(scene, lights.shape[k])
+            area = rect_area(scene, shape_of(scene, k))
             front = cos > 0
             Lk = jnp.where(front, lights.radiance[k], 0.0)
             pk = dist * dist / jnp.maximum(jnp.abs(cos) * area, 1e-30)
-        elif kind == LIGHT_SPHERE:
-            rad = scene.spheres.radius[lights.shape[k]]
+        else:
+            rad = scene.spheres.radius[shape_of(scene, k)]
             Lk = lights.radiance[k]
             pk = dist * dist / jnp.maximum(jnp.abs(cos) * 4.0 * jnp.pi * rad * rad, 1e-30)
-        else:
-            continue
-        pick = is_light & (lid == k)
+        pick = is_light & pick
         Le = jnp.where(pick, Lk, Le)
         pdf = jnp.where(pick, pk * sel[k], pdf)
     return Le, jax.lax.stop_gradient(pdf)
@@ -273,12 +313,12 @@ def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3, p: Vec3 | None = Non
     1/(pi R^2) on the bounding disk, mixed with `aimed_pdf` for an aimed light (p needed
     then; the mixture is the density the emission samples, so every technique's MIS sees
     the same pdf)."""
-    lights = scene.lights
     _, rb = bounding_sphere(scene)
     dt = n.x.dtype
     pdf = jnp.zeros((), dt)
     cos = vec.dot(n, w)
-    for k, kind in enumerate(lights.kind):
+    for g in groups(scene):
+        kind = g.kind
         if kind == LIGHT_RECT:
             pk = jnp.maximum(cos, 0.0) * sampling.INV_PI
         elif kind == LIGHT_SPHERE:
@@ -287,12 +327,12 @@ def emission_pdf_dir(scene: Scene, light, n: Vec3, w: Vec3, p: Vec3 | None = Non
             pk = jnp.asarray(0.25 / jnp.pi, dt)
         else:
             pk = jnp.ones((), dt) / (jnp.pi * rb * rb)
-            P = aim_fraction(scene, k)
+            P = g.aim
             if P > 0:
                 if p is None:
                     raise ValueError("emission_pdf_dir: an aimed light needs the point p")
                 pk = (1.0 - P) * pk + P * aimed_pdf(scene, w, p)
-        pdf = jnp.where(light == k, pk, pdf)
+        pdf = jnp.where(member(scene, g, light)[1], pk, pdf)
     return jax.lax.stop_gradient(pdf)
 
 
@@ -300,15 +340,16 @@ def light_point_pdf(scene: Scene, light, w_inf: Vec3):
     """Light-side pdf of y_0 (selection included): p_sel / area for area lights; for the
     sky and background p_sel times the direction pdf of w_inf (pointing to the sky); p_sel
     for the sun and point lights (delta: remapped to 1 times the selection)."""
-    lights = scene.lights
     sel = selection_pdf(scene)
     dt = w_inf.x.dtype
     pdf = jnp.zeros((), dt)
-    for k, kind in enumerate(lights.kind):
+    for g in groups(scene):
+        kind = g.kind
+        k, pick = member(scene, g, light)
         if kind == LIGHT_RECT:
-            pk = 1.0 / rect_area(scene, lights.shape[k])
+            pk = 1.0 / rect_area(scene, shape_of(scene, k))
         elif kind == LIGHT_SPHERE:
-            r = scene.spheres.radius[lights.shape[k]]
+            r = scene.spheres.radius[shape_of(scene, k)]
             pk = 1.0 / (4.0 * jnp.pi * r * r)
         elif kind == LIGHT_SKY:
             pk = sampling.cosine_hemisphere_pdf(w_inf.y)
@@ -316,7 +357,7 @@ def light_point_pdf(scene: Scene, light, w_inf: Vec3):
             pk = jnp.asarray(0.25 / jnp.pi, dt)
         else:
             pk = jnp.ones((), dt)
-        pdf = jnp.where(light == k, pk * sel[k], pdf)
+        pdf = jnp.where(pick, pk * sel[k], pdf)
     return jax.lax.stop_gradient(pdf)
 
 
@@ -329,9 +370,10 @@ def emitted_toward(scene: Scene, light, w: Vec3, n: Vec3):
     dt = n.x.dtype
     Le, _ = emitted_surface(scene, light, w, n, jnp.ones((), dt))
     out = Le * jnp.abs(vec.dot(n, w))
-    for k, kind in enumerate(lights.kind):
-        if kind == LIGHT_POINT:
-            out = jnp.where(light == k, lights.radiance[k], out)
+    for g in groups(scene):
+        if g.kind == LIGHT_POINT:
+            k, pick = member(scene, g, light)
+            out = jnp.where(pick, lights.radiance[k], out)
     return out * jnp.ones((C,), dt)
 
 
@@ -351,7 +393,9 @@ def sample_emission(scene: Scene, u) -> Emission:
                    jnp.zeros((C,), dt), jnp.ones((), dt), jnp.ones((), dt),
                    jnp.asarray(0, jnp.int32), jnp.zeros((), bool), jnp.zeros((), bool))
     dx, dy = sampling.concentric_disk(u[3], u[4])
-    for k, kind in enumerate(lights.kind):
+    for g in groups(scene):
+        kind = g.kind
+        k, pick = member(scene, g, li)
         Le = lights.radiance[k]
         if kind == LIGHT_POINT:  # y_0 the point, the direction uniform on the sphere
             p = vec.from_array(lights.position[k])
@@ -362,13 +406,13 @@ def sample_emission(scene: Scene, u) -> Emission:
                          jnp.ones((), bool))
         elif kind in (LIGHT_RECT, LIGHT_SPHERE):
             if kind == LIGHT_RECT:
-                p0, e1, e2, n, area = rect_frame(scene, lights.shape[k])
+                p0, e1, e2, n, area = rect_frame(scene, shape_of(scene, k))
                 p = p0 + e1 * u[1] + e2 * u[2]
                 loc = sampling.cosine_hemisphere(u[3], u[4])
                 d = vec.to_world(loc, n)
                 pdf_dir = sampling.cosine_hemisphere_pdf(loc.z)
             else:
-                r = lights.shape[k]
+                r = shape_of(scene, k)
                 c = vec.from_array(scene.spheres.center[r])
                 rad = scene.spheres.radius[r]
                 area = 4.0 * jnp.pi * rad * rad
@@ -406,7 +450,7 @@ def sample_emission(scene: Scene, u) -> Emission:
             t1, t2 = vec.onb(d)
             o = cb - d * (rb * 1.01) + (t1 * dx + t2 * dy) * rb
             pdf_disk = 1.0 / (jnp.pi * rb * rb) * jnp.ones((), dt)
-            P = aim_fraction(scene, k)
+            P = g.aim
             if P > 0:
                 # ---- aimed: with probability P (u[3] < P, remapped) the line crosses the
                 # water's plane at a point drawn from the footprint's map; it starts
@@ -423,7 +467,6 @@ def sample_emission(scene: Scene, u) -> Emission:
             e = Emission(o, -d, o, d, jnp.zeros((C,), dt), Le / (pdf_pos * pdf_disk), pdf_pos,
                          pdf_disk, jnp.asarray(k, jnp.int32),
                          jnp.ones((), bool), delta)
-        pick = li == k
         out = jax.tree.map(lambda a, b: jnp.where(pick, a, b), e, out)
     return out._replace(pdf_pos=jax.lax.stop_gradient(out.pdf_pos),
                         pdf_dir=jax.lax.stop_gradient(out.pdf_dir))

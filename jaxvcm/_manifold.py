@@ -124,7 +124,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from . import _vec as vec
-from ._geometry import water_height
+from ._geometry import over_waves, water_height
 from ._materials import fresnel_dielectric
 from ._scene import Water
 from ._vec import Vec3
@@ -225,21 +225,19 @@ def _sincos(x):
 
 def _waves_d2(w: Water, x, z, fast: bool = False):
     """h, (h_u, h_v) and the second derivatives (h_uu, h_uv, h_vv): one sine and one
-    cosine per wave, unrolled elementwise (as `_geometry.water_height`); `fast`: by
+    cosine per wave, elementwise in `_geometry.over_waves`' rolled loop; `fast`: by
     `_sincos` (the search, on stopped values; the differentiable steps use jnp's)."""
-    h = jnp.zeros_like(x) + w.level
-    hx, hz, hxx, hxz, hzz = (jnp.zeros_like(x) for _ in range(5))
-    for i in range(w.n_waves):
-        arg = w.kx[i] * x + w.kz[i] * z + w.phase0[i]
+    zero = jnp.zeros(jnp.broadcast_shapes(jnp.shape(x), jnp.shape(z)), jnp.result_type(x, z))
+
+    def wave(a, kx, kz, ph, c):
+        h, hx, hz, hxx, hxz, hzz = c
+        arg = kx * x + kz * z + ph
         sn, cs = _sincos(arg) if fast else (jnp.sin(arg), jnp.cos(arg))
-        sn, cs = w.amp[i] * sn, w.amp[i] * cs
-        h = h + sn
-        hx = hx + w.kx[i] * cs
-        hz = hz + w.kz[i] * cs
-        hxx = hxx - w.kx[i] * w.kx[i] * sn
-        hxz = hxz - w.kx[i] * w.kz[i] * sn
-        hzz = hzz - w.kz[i] * w.kz[i] * sn
-    return h, hx, hz, hxx, hxz, hzz
+        sn, cs = a * sn, a * cs
+        return (h + sn, hx + kx * cs, hz + kz * cs, hxx - kx * kx * sn, hxz - kx * kz * sn,
+                hzz - kz * kz * sn)
+
+    return over_waves(w, wave, (zero + w.level,) + (zero,) * 5)
 
 
 def _lever(ra, rb, b_is_direction: bool):
@@ -329,10 +327,11 @@ def _tol(w: Water, s: Vec3, a: Vec3, b: Vec3, H_len, eta_a, eta_b, b_is_directio
     scale = 2.0 + (inf_norm(a) + sn) / ra
     if not b_is_direction:
         scale = scale + (inf_norm(b) + sn) / rb
-    for i in range(w.n_waves):
-        k = jnp.sqrt(w.kx[i] * w.kx[i] + w.kz[i] * w.kz[i])
-        scale = scale + jnp.abs(w.amp[i]) * k * (
-            k * (jnp.abs(s.x) + jnp.abs(s.z)) + jnp.abs(w.phase0[i]) + 1.0)
+    # sum_i |A_i| k_i (k_i (|s_x| + |s_z|) + |phase_i| + 1), as two sums over the waves
+    k = jnp.sqrt(w.kx * w.kx + w.kz * w.kz)
+    Ak = jnp.abs(w.amp) * k
+    scale = scale + (jnp.abs(s.x) + jnp.abs(s.z)) * jnp.sum(Ak * k) + jnp.sum(
+        Ak * (jnp.abs(w.phase0) + 1.0))
     return (TOL_FACTOR * eps * scale * _lever(ra, rb, b_is_direction)
             * jnp.maximum(1.0, (eta_a + eta_b) / jnp.maximum(H_len, 1e-30)))
 

@@ -100,11 +100,8 @@ def _ends(scene: Scene) -> list[bool]:
 def _of_end(scene: Scene, light, b_dir: bool):
     """Traced: light `light` has the end kind `b_dir`."""
     want = (LIGHT_SUN,) if b_dir else _POINT_KINDS
-    ok = jnp.zeros((), bool)
-    for k, kind in enumerate(scene.lights.kind):
-        if kind in want:
-            ok = ok | (light == k)
-    return ok
+    table = jnp.asarray([kind in want for kind in scene.lights.kind])
+    return table[jnp.maximum(light, 0)] & (light >= 0)
 
 
 def _normal(water, s: Vec3) -> Vec3:
