@@ -121,7 +121,9 @@ def markdown(res: dict) -> str:
     L.append("- Reading: the program's size, its compile time and memory do not depend on "
              "the number of waves or lights: the lights run one code copy per kind "
              "(`_lights.groups`: the parameters of the light at hand gathered), the waves "
-             "one loop body of four waves (`_geometry.over_waves`). The pass time grows "
+             "one loop body of four waves (`_geometry.over_waves`); the compile times' "
+             "spread is the machine's load (2 cores, shared), not the scene. The pass "
+             "time grows "
              "with the waves, because every height evaluation of the march and of the "
              "manifold solves sums them all; with the lights it barely moves (one light "
              "is sampled per connection).")

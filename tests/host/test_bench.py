@@ -223,3 +223,33 @@ def test_bench_scaling_mode(tmp_path, monkeypatch):
     assert "spans 38.0-44.0 us (max/min 1.16;" in text
     dev = _table(text.split("2 forced CPU devices", 1)[1], "algorithm")
     assert [(r["algorithm"], r["speed-up"]) for r in dev] == [("pt", "1.50"), ("vcm", "1.25")]
+
+
+def test_bench_scene_size_mode(tmp_path, monkeypatch):
+    # --scene-size: the children are replaced by fixed figures; the rows are the waves'
+    # sweep (one light) then the lights' (the shipped four waves), in the table as given
+    from benchmarks import scene_size as _ss
+
+    a = _bench._settings(["--scene-size"])
+    assert a.mode == "scene-size" and a.algorithms == ["vcm"]
+    assert [p.stem for p in a.scene_paths] == ["pool"]
+    assert _bench.main(["--scene-size", "--scaling"]) == 2
+    a = _bench._settings(["--scene-size", "--out", str(tmp_path / "b.md")])
+    calls = []
+
+    def fake_child(scene_path, waves, lights, size, depth, log):
+        calls.append((waves, lights, size, depth))
+        return {"waves": waves or 4, "lights": lights, "lines": 22000 + waves, "lower_s": 3.0,
+                "compile_s": 10.0 + lights / 100, "temp_bytes": 5 * 2**20,
+                "pass_s": 0.02 * (1 + waves / 10), "peak_rss_bytes": 2**30}
+
+    monkeypatch.setattr(_ss, "_child", fake_child)
+    _ss.run_scene_size(a, ["--scene-size"], a.scene_paths[0], lambda *x: None)
+    assert calls == [(1, 1, 32, 8), (10, 1, 32, 8), (100, 1, 32, 8), (1000, 1, 32, 8),
+                     (0, 10, 32, 8), (0, 100, 32, 8)]
+    rows = _table((tmp_path / "b.md").read_text(), "waves")
+    assert [(r["waves"], r["lights"], r["StableHLO lines"]) for r in rows] == [
+        ("1", "1", "22,001"), ("10", "1", "22,010"), ("100", "1", "22,100"),
+        ("1000", "1", "23,000"), ("4", "10", "22,000"), ("4", "100", "22,000")]
+    assert rows[3]["pass"] == "2020.0 ms" and rows[5]["compile"] == "11.0 s"
+    assert json.loads((tmp_path / "b_scene-size.json").read_text())["size"] == 32
