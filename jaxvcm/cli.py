@@ -8,6 +8,14 @@ once, still writing what it has (`jaxvcm._signals`).
 A render's warnings (non-finite contributions zeroed, a black image) are one line each,
 `jaxvcm: warning: <message>`, and are also in the JSON sidecar ("warnings"). A render in
 which every path contribution was non-finite writes its (black) outputs and exits with 3.
+A fit that did not converge, or converged but fits badly (a region further than the
+config's max_delta_e from its target) or with a coefficient at a bound of its range,
+writes its outputs (fit.json says "converged" and "problems"), prints its verdict as one
+line `jaxvcm: warning: <verdict>` and exits with 4.
+
+Exit statuses: 0 done; 2 bad input (arguments, scene or fit config; nothing run);
+3 a render whose every contribution was non-finite; 4 a fit that failed (above);
+130 / 143 interrupted by SIGINT / SIGTERM.
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ from ._config import ALGORITHMS, MAX_DEPTH, RenderConfig
 from ._devices import resolve_devices
 from ._memory import parse_bytes
 from ._fit import WATER_FIELDS
+from ._fit._bounds import WATER_RANGES
 from ._io import FORMATS, check_writable, export_scene
 from ._io._schema import MAX_PIXELS
 from ._render import ALL_NONFINITE
@@ -61,6 +70,7 @@ def _err(msg) -> int:
 
 
 EXIT_ALL_NONFINITE = 3
+EXIT_FIT_FAILED = 4
 
 
 def _report_render(out: str) -> int:
@@ -234,8 +244,8 @@ def _water_model(text: str | None):
             x = float(v)
         except ValueError:
             raise ValueError(f"--water: {k}: expected a number, got {v.strip()!r}") from None
-        if not math.isfinite(x) or (k != "g" and x < 0) or (k == "g" and not -1 < x < 1):
-            raise ValueError(f"--water: {k}: out of range: {x}")
+        if not math.isfinite(x) or not WATER_RANGES[k].contains(x):
+            raise ValueError(f"--water: {k}: must lie in {WATER_RANGES[k].text()}, got {x:g}")
         kw[k] = x
     return WaterModel(**kw)
 
@@ -481,6 +491,9 @@ def _cmd_fit(a) -> int:
     print(res.summary())
     print(jp)
     print(pp)
+    if res.problems:
+        print(f"{PROG}: warning: {res.verdict}", file=sys.stderr, flush=True)
+        return EXIT_FIT_FAILED
     return 0
 
 

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 SPACES = ("srgb", "xyz", "lab")  # colour spaces of targets and residuals
+_SPACE_NAMES = {"srgb": "linear sRGB", "xyz": "CIE XYZ", "lab": "CIELAB"}
 
 # CIE constants of CIELAB (CIE 15:2004): epsilon = (6/29)^3, kappa = (29/3)^3.
 _LAB_EPS = 216.0 / 24389.0
@@ -26,6 +27,28 @@ def _colour_constants() -> tuple[np.ndarray, np.ndarray]:
     xy = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
     white = np.asarray(colour.xyY_to_XYZ([xy[0], xy[1], 1.0]), np.float64)
     return M, white
+
+
+def target_problem(target, space: str) -> str | None:
+    """Why `target` (3 numbers in `space`) cannot be a region's colour, or None.
+
+    Refused: non-finite numbers; in the linear spaces ("srgb", "xyz") a component <= 0 (a
+    region's mean colour reaches 0 only through infinitely dark water, so a fit towards it
+    runs its coefficients to a bound); in "lab" an L outside (0, 100] (0 is black, 100 the
+    white of Y = 1). There is no upper bound on brightness: the brightest a region can be
+    has no cheap honest bound (waves focus a sun or a point light into caustics of
+    unbounded radiance), so a target brighter than the scene can show is not refused here;
+    its fit ends with a coefficient at its bound or fits badly, and says so."""
+    t = np.asarray(target, np.float64)
+    shown = "[" + ", ".join(f"{x:g}" for x in t) + "]"
+    if not np.all(np.isfinite(t)):
+        return f"must be finite, got {shown}"
+    if space in ("srgb", "xyz") and not np.all(t > 0):
+        return (f"must be > 0 in every component in {_SPACE_NAMES[space]} (a region's colour "
+                f"is 0 only behind infinitely dark water), got {shown}")
+    if space == "lab" and not 0 < t[0] <= 100:
+        return f"L must lie in (0, 100] in CIELAB, got {shown}"
+    return None
 
 
 def srgb_to_xyz(rgb, M=None):

@@ -1,12 +1,14 @@
 """The TOML fit config of `jaxvcm fit CONFIG`: parsing and validation (`load_fit_config`).
 
 Errors are `FitConfigError`s whose str() is one line naming the file and the field.
-`WATER_FIELDS` is the one list of the fittable `WaterModel` leaves (spectral mode).
+`WATER_FIELDS` is the one list of the fittable `WaterModel` leaves (spectral mode); their
+ranges, and those of the RGB coefficients, are in `_bounds`. Everything a fit would refuse
+is refused here, before any scene is rendered: initial values outside the fit's ranges,
+targets that cannot be a region's colour (`_colour.target_problem`), a bad max_delta_e.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import re
 
@@ -15,12 +17,14 @@ import numpy as np
 from .._config import ALGORITHMS, MAX_DEPTH, RenderConfig
 from .._io._scene_file import SceneError, _Ctx, scene_from_dict
 from .._io._schema import IOR, MAX_PIXELS
-from .._io._toml import Range, key_path, read_toml
+from .._io._toml import ANY, Range, key_path, read_toml
 from .._spectral._scene import MAX_WAVELENGTHS
 from .._spectral import spectral_scene
 from .._spectral import WaterModel
-from ._colour import SPACES
+from ._bounds import SIGMA_FIT, WATER_RANGES, fit_range
+from ._colour import SPACES, target_problem
 from ._model import Region
+from ._solver import MAX_DELTA_E
 
 FREE = ("both", "sigma_a", "sigma_s")  # which coefficients an RGB fit adjusts
 
@@ -31,14 +35,18 @@ CONFIG_DOC = """Fit config (TOML), for `jaxvcm fit CONFIG [--out DIR]`:
   [render]    algorithm = "pt", max_depth = 6, rr_depth, radius, passes = 16, seed = 0,
               width, height           (image size of every scene; default: the files')
   [solver]    max_steps = 40, rtol = 1e-4, atol = 1e-5,
+              max_delta_e = 2.0       (a region further from its target, in Delta E 2000,
+                                       fits badly: `jaxvcm fit` then exits with 4)
               free = "both" | "sigma_a" | "sigma_s"   (RGB only: which coefficients are fitted)
-  [init]      sigma_a, sigma_s        (spectra; default: the first scene's water)
+  [init]      sigma_a, sigma_s        (spectra in (1e-9, 1e6) 1/m; default: the first
+                                       scene's water)
   [truth]     sigma_a, sigma_s        (optional; only reported: relative errors)
   [scenes.NAME]  file = "scene.toml"  (relative to the config file)
                  override = { ... }   (tables deep-merged into the scene file, e.g.
                                        override.materials.floor.albedo = 0.02)
   [[regions]] name, scene = NAME, rect = [x0, y0, x1, y1] (pixels, half-open, row 0 at
               the top), target = [3 numbers], uncertainty = number | [3 numbers] (optional)
+              (targets: > 0 in every component in srgb and xyz; L in (0, 100] in lab)
 
 Spectral mode (mode = "spectral"; jaxvcm.fit_spectral, the scenes upsampled with
 jaxvcm.spectral_scene; the water is a jaxvcm.WaterModel, the scenes' RGB sigma_a and
@@ -51,11 +59,12 @@ sigma_s are not used):
   [spectral]  n_wavelengths = 8, ior = "data" | "scene" | number, phase = "auto" | "scene",
               sun = "D65" | "blackbody", sun_temperature = 5778, dispersion = false
   [water]     the model's fixed fields (and the default initial values): a_cdom, S, a_flat,
-              b_p, n_p, g, a_w_scale (numbers), pure_absorption, pure_scattering (booleans);
-              default: pure water
-  [init]      NAME = value for names in params (default: [water]'s value)
+              b_p, n_p, g, a_w_scale (numbers, in their ranges: jaxvcm/_fit/_bounds.py
+              WATER_RANGES), pure_absorption, pure_scattering (booleans); default: pure water
+  [init]      NAME = value for names in params (default: [water]'s value; inside the
+              range, above 0 in log space)
   [truth]     NAME = value (optional; only reported: errors)
-  [solver]    max_steps, rtol, atol (no free)
+  [solver]    max_steps, rtol, atol, max_delta_e (no free)
 """
 
 WATER_FIELDS = ("a_cdom", "S", "a_flat", "b_p", "n_p", "g", "a_w_scale")  # fittable leaves
@@ -134,30 +143,32 @@ def load_fit_config(path) -> dict:
     width = ctx.integer(r["width"], "render.width", hi=MAX_PIXELS) if "width" in r else None
     height = ctx.integer(r["height"], "render.height", hi=MAX_PIXELS) if "height" in r else None
     s = doc.get("solver", {})
-    ctx.table(s, {"max_steps", "rtol", "atol"} | (set() if spectral else {"free"}), set(),
-              "solver")
+    ctx.table(s, {"max_steps", "rtol", "atol", "max_delta_e"}
+              | (set() if spectral else {"free"}), set(), "solver")
     free = ctx.string(s.get("free", "both"), "solver.free", FREE)
     max_steps = ctx.integer(s.get("max_steps", 40), "solver.max_steps")
     rtol = ctx.number(s.get("rtol", 1e-4), "solver.rtol", positive=True)
     atol = ctx.number(s.get("atol", 1e-5), "solver.atol", positive=True)
+    max_delta_e = ctx.number(s.get("max_delta_e", MAX_DELTA_E), "solver.max_delta_e",
+                             positive=True)
 
     if spectral:
         sp = _spectral_settings(ctx, doc)
     else:
-        def spectra(table, field, required):
+        def spectra(table, field, required, rng=ANY):
             if table is None:
                 return None
             ctx.table(table, {"sigma_a", "sigma_s"}, required, field)
             out = {}
             for k in ("sigma_a", "sigma_s"):
                 if k in table:
-                    v = ctx.spectrum(table[k], f"{field}.{k}")
+                    v = ctx.spectrum(table[k], f"{field}.{k}", rng)
                     if not np.all(v > 0):
                         ctx.fail(f"{field}.{k}", "must be > 0 in every channel (log-space fit)")
                     out[k] = v
             return out
 
-        init = spectra(doc.get("init"), "init", set()) or {}
+        init = spectra(doc.get("init"), "init", set(), SIGMA_FIT) or {}  # the fit's range
         truth = spectra(doc.get("truth"), "truth", {"sigma_a", "sigma_s"})
 
     sc = doc["scenes"]
@@ -208,7 +219,10 @@ def load_fit_config(path) -> dict:
         if not (rect[0] < rect[2] <= cam.width and rect[1] < rect[3] <= cam.height):
             ctx.fail(f"{fld}.rect", f"{rect} is empty or outside the {cam.width}x{cam.height} "
                                     "image (need x0 < x1 <= width, y0 < y1 <= height)")
-        tgt = ctx.vec(e["target"], f"{fld}.target")
+        tgt = ctx.vec(e["target"], f"{fld}.target")  # finite numbers
+        why = target_problem(tgt, space)
+        if why:
+            ctx.fail(f"{fld}.target", why)
         unc = None
         if "uncertainty" in e:
             u = e["uncertainty"]
@@ -220,8 +234,14 @@ def load_fit_config(path) -> dict:
         if any(rg.name == nm for rg in regions):
             ctx.fail(f"{fld}.name", f"duplicate region name {nm!r}")
         regions.append(Region(nm, scn, tuple(rect), tuple(float(x) for x in tgt), unc))
-    if not all(math.isfinite(x) for r in regions for x in r.target):  # pragma: no cover
-        ctx.fail("regions", "targets must be finite")
+    if not spectral:  # initial values the config leaves to the first scene's water
+        w0 = next(iter(scenes.values())).water
+        for k in ("sigma_a", "sigma_s"):
+            v = np.asarray(getattr(w0, k), np.float64)
+            if k not in init and not all(SIGMA_FIT.contains(x) for x in v):
+                ctx.fail(f"init.{k}", f"not set, and the first scene's water {k} "
+                                      f"{v.tolist()} is outside {SIGMA_FIT.text()}: set "
+                                      f"init.{k}")
     if spectral:
         model = WaterModel(**sp["water"])
         try:
@@ -231,10 +251,11 @@ def load_fit_config(path) -> dict:
         return dict(mode="spectral", spectral=sps, regions=regions, params=sp["params"],
                     space=space, init=sp["init"], config=config, passes=passes, seed=seed,
                     max_steps=max_steps, rtol=rtol, atol=atol, truth=sp["truth"],
-                    linear=sp["linear"])
+                    linear=sp["linear"], max_delta_e=max_delta_e)
     return dict(scenes=scenes, regions=regions, space=space, config=config, passes=passes,
                 seed=seed, init_sigma_a=init.get("sigma_a"), init_sigma_s=init.get("sigma_s"),
-                free=free, max_steps=max_steps, rtol=rtol, atol=atol, truth=truth)
+                free=free, max_steps=max_steps, rtol=rtol, atol=atol, truth=truth,
+                max_delta_e=max_delta_e)
 
 
 def _spectral_settings(ctx, doc) -> dict:
@@ -283,13 +304,7 @@ def _spectral_settings(ctx, doc) -> dict:
     water = {}
     for k in WATER_FIELDS:
         if k in wt:
-            if k == "g":
-                v = ctx.number(wt[k], "water.g")
-                if not -1.0 < v < 1.0:
-                    ctx.fail("water.g", f"must be in (-1, 1), got {v}")
-            else:
-                v = ctx.number(wt[k], f"water.{k}", nonneg=True)
-            water[k] = v
+            water[k] = ctx.number(wt[k], f"water.{k}", WATER_RANGES[k])
     for k in WATER_FLAGS:
         if k in wt:
             if not isinstance(wt[k], bool):
@@ -310,6 +325,10 @@ def _spectral_settings(ctx, doc) -> dict:
         if k not in linear and not v > 0:
             ctx.fail(f"init.{k}", f"must be > 0 for a log-space fit, got {v} (set init.{k}, "
                                   "or list it in linear)")
+        r = fit_range(k, k in linear)
+        if not r.contains(v):
+            ctx.fail(f"init.{k}", f"must lie in {r.text()}, got {v:g}"
+                                  + ("" if k in init else f" (from [water]; set init.{k})"))
         init[k] = v
     truth = values(doc.get("truth"), "truth", WATER_FIELDS)
     return {"params": params, "linear": linear, "scene_kw": kw, "water": water,

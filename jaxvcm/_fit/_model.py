@@ -35,7 +35,7 @@ from .._config import RenderConfig
 from .._render import pass_key, render_pass
 from .._scene import Scene
 from .._spectral import SpectralScene, render_pass_spectral
-from ._colour import to_space, xyz_to_space
+from ._colour import target_problem, to_space, xyz_to_space
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,9 +61,10 @@ def _named(items, cls) -> tuple[list, list[str]]:
     return items, [str(i) for i in range(len(items))]
 
 
-def _resolve(scenes, regions) -> tuple[list[Scene], list[Region], list[str]]:
-    """Validate the regions against the scenes -> (scenes, regions with scene indices and
-    integer rects, scene names)."""
+def _resolve(scenes, regions, space: str) -> tuple[list[Scene], list[Region], list[str]]:
+    """Validate the regions against the scenes and their targets in `space`
+    (`target_problem`) -> (scenes, regions with scene indices and integer rects, scene
+    names)."""
     scenes, names = _named(scenes, Scene)
     if not scenes:
         raise ValueError("fit: no scenes")
@@ -97,6 +98,9 @@ def _resolve(scenes, regions) -> tuple[list[Scene], list[Region], list[str]]:
                              f"{W}x{H} image (need 0 <= x0 < x1 <= {W}, 0 <= y0 < y1 <= {H})")
         if len(r.target) != 3:
             raise ValueError(f"regions.{r.name}.target: expected 3 numbers")
+        why = target_problem(r.target, space)
+        if why:
+            raise ValueError(f"regions.{r.name}.target: {why}")
         if r.uncertainty is not None and (len(r.uncertainty) != 3 or
                                           not all(u > 0 for u in r.uncertainty)):
             raise ValueError(f"regions.{r.name}.uncertainty: expected 3 numbers > 0")

@@ -15,6 +15,13 @@ from ._rgb import FitResult
 from ._spectral import SpectralFitResult, absorption_band
 
 
+def _wrap(text: str, width: int = 70) -> str:
+    """A failed fit's verdict for a figure title (lines of at most `width` characters)."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width))
+
+
 def plot_swatches_and_loss(res, ax, ax2) -> None:
     """The two panels every fit figure has: initial / target / fitted swatches per region
     (one display exposure for all) on `ax`, the loss per Levenberg-Marquardt step on `ax2`.
@@ -68,9 +75,10 @@ def plot_fit(res: FitResult, path: str) -> None:
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 0.9 * R + 2.2),
                                   gridspec_kw={"width_ratios": [1.2, 1]})
     plot_swatches_and_loss(res, ax, ax2)
-    txt = "\n".join([f"sa = " + ", ".join(f"{v:.4g}" for v in res.sigma_a),
-                     f"ss = " + ", ".join(f"{v:.4g}" for v in res.sigma_s),
-                     f"{res.iterations} steps, {res.wall_seconds:.1f} s"])
+    txt = "\n".join(["sa = " + ", ".join(f"{v:.4g}" for v in res.sigma_a),
+                     "ss = " + ", ".join(f"{v:.4g}" for v in res.sigma_s),
+                     f"{res.iterations} steps, {res.wall_seconds:.1f} s"]
+                    + ([_wrap(res.verdict)] if res.problems else []))
     ax2.set_title(txt, fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -111,7 +119,8 @@ def plot_fit_spectral(res: SpectralFitResult, path: str) -> None:
     plot_swatches_and_loss(res, ax, ax2)
     ax2.set_title("\n".join(f"{k} = {v:.4g} ± {res.params_sd[k]:.2g}"
                             for k, v in res.params.items())
-                  + f"\n{res.iterations} steps, {res.wall_seconds:.1f} s", fontsize=8)
+                  + f"\n{res.iterations} steps, {res.wall_seconds:.1f} s"
+                  + (f"\n{_wrap(res.verdict)}" if res.problems else ""), fontsize=8)
     lam = np.linspace(380.0, 720.0, 341)
     mid, lo, hi = absorption_band(res, lam)
     base = dict(res.water or {})

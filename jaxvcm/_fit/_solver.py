@@ -14,6 +14,14 @@ would add a second copy of the renderer to trace and compile).
 Covariance of the parameters from the Jacobian J at the solution: `cov_unscaled` =
 (J^T J)^-1 trusts the stated uncertainties; `cov` = (J^T J)^-1 s^2 with the residual
 variance s^2 = sum r^2 / (m - n).
+
+`assess` turns the outcome into words: converged means optimistix's result "successful";
+a fit that converged still *fits badly* when its worst region is more than `max_delta_e`
+Delta E 2000 from its target, and a parameter at a bound of its range (`_bounds`) is a
+problem too. Why Delta E 2000 and not chi^2: the default uncertainties (1 % of the target,
+or 1 Delta E*ab) set the residuals' scale, they are not measurement errors, so chi^2 would
+judge the defaults rather than the fit; Delta E 2000 is the same perceptual scale whatever
+the targets' space, and about 1-2 is a just-noticeable difference.
 """
 
 from __future__ import annotations
@@ -50,6 +58,32 @@ def result_name(result) -> str:
         if v is not None and bool(result == v):
             return name
     return "failed"
+
+
+MAX_DELTA_E = 2.0  # default: a worst region further than this from its target fits badly
+MAX_LISTED = 5  # regions named in a "fits badly" line
+
+
+def assess(result: str, steps: int, delta_e, region_names, max_delta_e: float,
+           at_bound: list[str]) -> tuple[bool, list[str], str]:
+    """-> (converged, problems, verdict): problems one line each (not converged, fits
+    badly, each parameter at a bound); verdict one line for the report."""
+    converged = result == "successful"
+    problems = [] if converged else [
+        f"did not converge: {result} after {steps} step{'' if steps == 1 else 's'}"]
+    de = np.asarray(delta_e, np.float64)
+    worst = float(np.max(de)) if de.size else 0.0
+    bad = [n for n, d in zip(region_names, de) if not d <= max_delta_e]  # NaN is bad
+    if bad:
+        more = f" and {len(bad) - MAX_LISTED} more" if len(bad) > MAX_LISTED else ""
+        problems.append(f"fits badly: max dE2000 {worst:.3g} > {max_delta_e:g} "
+                        f"(regions: {', '.join(bad[:MAX_LISTED])}{more})")
+    problems += list(at_bound)
+    if not problems:
+        verdict = f"fit converged: max dE2000 {worst:.3g} <= {max_delta_e:g}"
+    else:
+        verdict = ("fit converged but " if converged else "fit ") + "; ".join(problems)
+    return converged, problems, verdict
 
 
 def levenberg_marquardt(residual_fn: Callable, y0, *, rtol: float, atol: float,

@@ -9,10 +9,13 @@ are leaves of the water model:
 
 Parameterisation: by default every fitted parameter is fitted in log space (positive by
 construction; a parameter at exactly 0 cannot be fitted in log space, start it small or
-fit it linearly). Names listed in `linear` are fitted as they are, unconstrained: use it for
-terms whose true value may be 0 (a_cdom, a_flat of pure water), where a log fit could
-only creep towards -infinity and its Jacobian uncertainty would be meaningless. A
-negative total sigma_a is clamped to 0 by the renderer (`SpectralScene.at_wavelengths`).
+fit it linearly). Names listed in `linear` are fitted as they are: use it for terms whose
+true value may be 0 (a_cdom, a_flat of pure water), where a log fit could only creep
+towards -infinity and its Jacobian uncertainty would be meaningless. A negative total
+sigma_a is clamped to 0 by the renderer (`SpectralScene.at_wavelengths`). Every leaf stays
+in its range (`_bounds.fit_range`: `WATER_RANGES`, a linear leaf whose range starts at 0
+mirrored below it), through the bounded map of `_bounds.Bounds`; leaves of a subclass
+without a range are unbounded.
 
 Config files (`jaxvcm fit CONFIG` with `mode = "spectral"`): see `_config.CONFIG_DOC`.
 """
@@ -29,10 +32,11 @@ import numpy as np
 from .._config import RenderConfig
 from .._spectral import SpectralScene
 from .._spectral import WaterModel
+from ._bounds import Bounds, bound_problems, fit_range
 from ._colour import SPACES, delta_e2000
 from ._config import WATER_FIELDS
 from ._model import Region, _named, _resolve, residuals, spectral_region_colours_fn
-from ._solver import levenberg_marquardt
+from ._solver import MAX_DELTA_E, assess, levenberg_marquardt
 
 
 @dataclasses.dataclass
@@ -41,7 +45,8 @@ class SpectralFitResult:
 
     Their uncertainties, the regions' target, fitted and initial colours, their Delta E
     2000, the solver's record (iterations, loss history, times) and the config; `to_dict`
-    gives fit.json's content."""
+    gives fit.json's content. `converged`, `problems`, `verdict`, `at_bound`: as in
+    `FitResult`."""
 
     params: dict  # name -> fitted value
     params_sd: dict  # name -> 1 sigma (scaled by the residual variance)
@@ -68,6 +73,16 @@ class SpectralFitResult:
     solve_seconds: float = 0.0
     water: dict | None = None  # the fitted WaterModel's fields (for plots and reports)
     model_type: type | None = None  # WaterModel or the subclass that was fitted
+    converged: bool = False  # optimistix's result is "successful"
+    problems: list = dataclasses.field(default_factory=list)  # one line each; [] if good
+    verdict: str = ""  # one line: "fit converged: ..." or what is wrong
+    at_bound: dict = dataclasses.field(default_factory=dict)  # name -> "lower" / "upper"
+    max_delta_e: float = MAX_DELTA_E  # a worse region fits badly
+
+    @property
+    def ok(self) -> bool:
+        """Converged, every region within `max_delta_e`, no parameter at a bound."""
+        return not self.problems
 
     def to_dict(self) -> dict:
         def f(x):
@@ -91,6 +106,9 @@ class SpectralFitResult:
              "delta_e2000_max": float(np.max(self.delta_e2000)),
              "delta_e2000_mean": float(np.mean(self.delta_e2000)),
              "iterations": self.iterations, "result": self.result,
+             "converged": self.converged, "verdict": self.verdict,
+             "problems": list(self.problems), "at_bound": dict(self.at_bound),
+             "max_delta_e": self.max_delta_e,
              "wall_seconds": round(self.wall_seconds, 3),
              "solve_seconds": round(self.solve_seconds, 3), "history": self.history,
              "config": self.config}
@@ -117,7 +135,8 @@ class SpectralFitResult:
             ps,
             f"dE2000 max {np.max(self.delta_e2000):.3g}, mean {np.mean(self.delta_e2000):.3g} "
             f"(initial max {np.max(self.delta_e2000_initial):.3g}); {self.iterations} steps, "
-            f"{self.result}; {self.wall_seconds:.1f} s"])
+            f"{self.result}; {self.wall_seconds:.1f} s",
+            self.verdict])
 
 
 def fit_spectral(spectral, regions: Sequence[Region],
@@ -126,6 +145,7 @@ def fit_spectral(spectral, regions: Sequence[Region],
                  config: RenderConfig | None = None, passes: int = 16, seed: int = 0,
                  max_steps: int = 40, rtol: float = 1e-3, atol: float = 1e-3,
                  truth: dict | None = None, linear: Sequence[str] = (),
+                 max_delta_e: float = MAX_DELTA_E,
                  progress: bool = False) -> SpectralFitResult:
     """Fit water-model parameters (shared by all `spectral` scenes) to the region targets.
 
@@ -133,7 +153,8 @@ def fit_spectral(spectral, regions: Sequence[Region],
     fitted so that the region colours of the spectral scenes match the targets (in "xyz",
     "srgb" = linear sRGB, or "lab"). init: name -> initial value (default: the first
     scene's water model). linear: names fitted in linear space (may cross 0); the others in
-    log space.
+    log space. Every parameter starts and stays inside its range (`_bounds.fit_range`).
+    max_delta_e: a region further than this (Delta E 2000) from its target fits badly.
     Uncertainties: sd(p) = p sd(ln p) for log-space parameters, sd(p) for linear ones."""
     t0 = _time.perf_counter()
     spectral, snames = _named(spectral, SpectralScene)
@@ -159,32 +180,44 @@ def fit_spectral(spectral, regions: Sequence[Region],
         raise ValueError(f"space: unknown {space!r}")
     if not isinstance(passes, int) or passes < 1:
         raise ValueError(f"passes: must be a positive integer, got {passes!r}")
-    _, regions, _ = _resolve({k: s.scene for k, s in zip(snames, spectral)}, regions)
+    if not max_delta_e > 0:
+        raise ValueError(f"max_delta_e: must be > 0, got {max_delta_e!r}")
+    _, regions, _ = _resolve({k: s.scene for k, s in zip(snames, spectral)}, regions, space)
     config = config or RenderConfig(algorithm="pt", max_depth=6)
     init = dict(init or {})
     for k in init:
         if k not in params:
             raise ValueError(f"init: {k!r} is not one of the fitted params")
     p0 = np.array([float(init.get(p, np.asarray(getattr(w0, p)))) for p in params])
-    if not np.all(np.isfinite(p0)):
-        raise ValueError("init: values must be finite")
-    if not all(v > 0 for v, p in zip(p0, params) if p not in linear):
-        raise ValueError("init: every fitted parameter must be > 0 (log-space fit)")
     lin = np.array([p in linear for p in params])
+    ranges = [fit_range(p, p in linear) if p in WATER_FIELDS else None for p in params]
+    for p, v, r in zip(params, p0, ranges):
+        if not np.isfinite(v):
+            raise ValueError(f"init.{p}: must be finite, got {v}")
+        if p not in linear and not v > 0:
+            raise ValueError(f"init.{p}: must be > 0 for a log-space fit, got {v:g} (every "
+                             "fitted parameter not in linear)")
+        if r is not None and not r.contains(v):
+            raise ValueError(f"init.{p}: must lie in {r.text()}, got {v:g}")
     theta0 = np.where(lin, p0, np.log(np.where(lin, 1.0, p0)))
+    bounds = Bounds.of(ranges, ~lin)
     dtype = spectral[0].scene.bounds.dtype
     colours = spectral_region_colours_fn(spectral, regions, params, config, passes, seed,
                                          linear)
     residual_fn, targets, unc = residuals(colours, regions, space, "xyz",
-                                          lambda y: y.astype(dtype), dtype)
-    sol = levenberg_marquardt(residual_fn, jnp.asarray(theta0, jnp.result_type(float)),
+                                          lambda y: bounds.to_x(y).astype(dtype), dtype)
+    sol = levenberg_marquardt(residual_fn, jnp.asarray(bounds.to_u(theta0),
+                                                       jnp.result_type(float)),
                               rtol=rtol, atol=atol, max_steps=max_steps, progress=progress,
                               step_size=False)
-    y = sol.y
+    y = bounds.to_x_host(sol.y)  # theta: ln p or p
+    for e in sol.history:  # the solver's variable -> theta
+        e["theta"] = bounds.to_x_host(e["theta"]).tolist()
     if sol.overflow:
         raise RuntimeError("fit_spectral: the merging gather overflowed its capacity")
     res = sol.residuals
-    cov = sol.cov
+    g = bounds.slope(sol.y)  # dtheta = slope du
+    cov = sol.cov * np.outer(g, g)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     vals = np.where(lin, y, np.exp(np.where(lin, 0.0, y)))
     vals_sd = np.where(lin, sd, vals * sd)
@@ -193,21 +226,29 @@ def fit_spectral(spectral, regions: Sequence[Region],
     water = {f.name: getattr(w0, f.name) for f in dataclasses.fields(w0)}
     water = {k: (v if isinstance(v, bool) else float(np.asarray(v))) for k, v in water.items()}
     water.update({p: float(v) for p, v in zip(params, vals)})
+    de = delta_e2000(targets, fitted, space)
+    side = bounds.side(sol.y)
+    converged, problems, verdict = assess(sol.result, sol.steps, de,
+                                          [r.name for r in regions], max_delta_e,
+                                          bound_problems(params, side, ranges))
     return SpectralFitResult(
         params=dict(zip(params, vals)), params_sd=dict(zip(params, vals_sd)),
-        init=dict(zip(params, p0)), cov=cov, cov_unscaled=sol.cov_unscaled, space=space,
-        regions=[dataclasses.replace(r, scene=snames[r.scene]) for r in regions],
-        targets=targets, fitted=fitted, initial=initial,
-        delta_e2000=delta_e2000(targets, fitted, space),
+        init=dict(zip(params, p0)), cov=cov, cov_unscaled=sol.cov_unscaled * np.outer(g, g),
+        space=space, regions=[dataclasses.replace(r, scene=snames[r.scene]) for r in regions],
+        targets=targets, fitted=fitted, initial=initial, delta_e2000=de,
         delta_e2000_initial=delta_e2000(targets, initial, space),
         iterations=sol.steps, result=sol.result,
         wall_seconds=_time.perf_counter() - t0, history=sol.history,
         config={"render": config.record(), "passes": passes, "seed": seed,
                 "n_wavelengths": spectral[0].n_wavelengths, "max_steps": max_steps,
-                "rtol": rtol, "atol": atol, "scenes": snames,
+                "rtol": rtol, "atol": atol, "max_delta_e": max_delta_e, "scenes": snames,
                 "size": [[s.scene.camera.width, s.scene.camera.height] for s in spectral]},
-        truth=truth, linear=linear, theta=y, jacobian=sol.jacobian, residuals=res,
-        solve_seconds=sol.seconds, water=water, model_type=type(w0))
+        truth=truth, linear=linear, theta=y,
+        jacobian=sol.jacobian / np.where(g > 0, g, 1.0), residuals=res,
+        solve_seconds=sol.seconds, water=water, model_type=type(w0), converged=converged,
+        problems=problems, verdict=verdict,
+        at_bound={p: ("upper" if s > 0 else "lower") for p, s in zip(params, side) if s},
+        max_delta_e=max_delta_e)
 
 
 # ------------------------------------------------------------------ absorption spectrum

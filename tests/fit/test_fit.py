@@ -72,6 +72,10 @@ def test_recover_rgb_within_2_percent(tmp_path):
     h = res["history"]
     assert h and h[-1]["loss_accepted"] < 1e-2 * h[0]["loss"]
     assert res["iterations"] >= 2 and res["result"] == "successful"
+    # and it says so: converged, every region within max_delta_e = 2 dE2000 (all < 0.1,
+    # above), every coefficient inside (1e-9, 1e6) /m, away from both bounds
+    assert res["converged"] is True and res["problems"] == [] and res["at_bound"] == {}
+    assert res["verdict"].startswith("fit converged: max dE2000 ")
 
 
 # ------------------------------------------------------------------ (b) Jacobians vs FD
@@ -254,7 +258,7 @@ def test_fit_spectral_rejects_bad_arguments():
     reg = [Region("a", 0, (0, 0, 4, 4), (0.1, 0.1, 0.1))]
     with pytest.raises(ValueError, match="params: unknown 'sigma_a'"):
         jaxvcm.fit_spectral(sp, reg, ["sigma_a"])
-    with pytest.raises(ValueError, match="init: every fitted parameter must be > 0"):
+    with pytest.raises(ValueError, match=r"init\.a_cdom: must be > 0 for a log-space fit"):
         jaxvcm.fit_spectral(sp, reg, ["a_cdom"])  # pure water: a_cdom = 0
     with pytest.raises(ValueError, match=r"regions.a.rect"):
         jaxvcm.fit_spectral(sp, [Region("a", 0, (0, 0, 9, 4), (0.1, 0.1, 0.1))], ["b_p"])

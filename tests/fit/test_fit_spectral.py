@@ -98,6 +98,9 @@ BAD = {
     "linear_not_fitted": ('linear = ["b_p"]', "linear[0]"),
     "init_not_fitted": ("[init]\nb_p = 0.1", "init.b_p"),
     "init_zero_log": ("[init]\na_cdom = 0.0", "init.a_cdom"),
+    "init_out_of_range": ("[init]\na_cdom = 2e6", "init.a_cdom"),  # (1e-9, 1e6) 1/m
+    "water_n_p": ("[water]\nn_p = 5.0", "water.n_p"),  # [0, 4]: 4 is Rayleigh
+    "max_delta_e": ("[solver]\nmax_delta_e = -1.0", "solver.max_delta_e"),
     "water_unknown": ("[water]\ncolour = 1", "water.colour"),
     "water_g": ("[water]\ng = 1.5", "water.g"),
     "water_negative": ("[water]\nb_p = -0.1", "water.b_p"),
@@ -221,6 +224,7 @@ target = [{t[0]!r}, {t[1]!r}, {t[2]!r}]
     assert rc == 0
     res = json.loads((out / "fit.json").read_text())
     assert res["mode"] == "spectral" and res["result"] == "successful"
+    assert res["converged"] is True and res["problems"] == [] and res["at_bound"] == {}
     a = res["params"]["a_cdom"]
     assert abs(a - truth) < 0.002, res["params"]
     assert res["init"]["a_cdom"] == 0.02
