@@ -171,7 +171,9 @@ class Scene(eqx.Module):
     spheres: Spheres
     water: Water
     lights: Lights
-    bounds: Float[Array, "2 3"]  # axis-aligned bounding box of the finite geometry
+    bounds: Float[Array, "2 3"]  # axis-aligned box of the shapes and the water (not the
+    #                                camera, not point lights): the infinite lights' disk and
+    #                                the merging radius's reference length
     name: str = eqx.field(static=True, default="scene")
 
     @property

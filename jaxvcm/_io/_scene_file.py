@@ -102,8 +102,8 @@ def scene_from_dict(doc: dict, src: str = "<scene>", *, width=None, height=None,
                 if a > 0 and not water["enabled"]:
                     ctx.fail(field, "aims at the water's footprint: the scene has no [water]")
             groups = _bound_points(cam["pos"], parts, water)
-            bounds = _box(groups)
-            _check_sizes(ctx, parts, bounds, groups)
+            _check_sizes(ctx, parts, _box(groups), groups)
+            bounds = _box(_geometry(groups))
             power = _light_power(parts, bounds)
         except FloatingPointError as e:  # pragma: no cover (no known case)
             ctx.fail("scene", f"a derived value is out of range ({e})")
@@ -157,6 +157,21 @@ def _bound_points(pos: np.ndarray, parts: _Parts, water: dict) -> list:
         groups.append(("water.level", np.array([[fp[0], water["level"] + a, fp[2]],
                                                 [fp[1], water["level"] + a, fp[3]]])))
     return groups
+
+
+def _geometry(groups) -> list:
+    """The groups of `_bound_points` that are surfaces light can reach (shapes, the water),
+    without the camera and the point lights: the scene's `bounds`. The sun's, the sky's and
+    the background's photons start on the disk of this box's bounding sphere, and the
+    merging radius is a fraction of its radius, so neither depends on where the camera
+    stands (a camera further back would thin the photons and widen the radius). Unbiased:
+    every line that meets a surface passes through the sphere around all surfaces, so the
+    disk covers every photon that can land anywhere; light that meets no surface reaches
+    no camera vertex and no camera (the sun and point lights cannot be hit, and an escaped
+    camera ray's sky or background is found by its emitter hit, which no disk bounds). A
+    scene without surfaces keeps the camera's point (radius 0: no photon lands)."""
+    geo = [g for g in groups if g[0] == "shapes" or g[0].startswith("water.")]
+    return geo or groups
 
 
 def _box(groups) -> np.ndarray:

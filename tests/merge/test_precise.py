@@ -2,9 +2,11 @@
 the scene's float dtype and extent (`_hashgrid.build`'s `precise` condition); the radius
 schedule stops there (`_merge.pass_radius`) and the render goes on, with one warning line
 (`_merge.radius_floor_note`), never a silent miss of neighbours and never an error that
-ends a progressive render. pool_sun's box spans 8.2 m (|coordinate| + extent): in float32
-the grid resolves cells down to 8.2 m / (2^-7 / (32 x 2^-24) - 2) = 2.0 mm, i.e. radii >=
-0.99 mm, a first-pass fraction 3.56e-4 of the bounding radius; the floor is 1 % above it.
+ends a progressive render. pool_sun's box (its shapes and water, [-1, -1.2, -1] ..
+[1, 0.3, 1]) spans 3 m (|coordinate| + extent, along x and z): in float32 the grid resolves
+cells down to 3 m / (2^-7 / (32 x 2^-24) - 2) = 0.733 mm, i.e. radii >= 0.364 mm, a
+first-pass fraction 2.27e-4 of the bounding radius
+(1.60 m, half the box's diagonal sqrt(2^2 + 1.5^2 + 2^2)); the floor is 1 % above it.
 """
 
 from __future__ import annotations
@@ -29,22 +31,22 @@ def sun():
 def test_the_floor_is_the_grids_own_limit(sun):
     # points at the corners of the scene's box (the largest span any pass can have): the
     # float32 grid's traced `precise` flag holds exactly down to the host's limit
-    # (3.56e-4 of the bounding radius), and the traced limit equals the host's
+    # (2.27e-4 of the bounding radius), and the traced limit equals the host's
     lo, hi = np.asarray(sun.bounds)
     pts = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
                     for c in (lo[2], hi[2])], np.float32)
     rb = 0.5 * float(np.linalg.norm(hi - lo))
     r_min, _ = _merge.precise_radius(sun)
-    assert np.isclose(r_min / rb, 3.56e-4, rtol=2e-3)
+    assert np.isclose(r_min / rb, 2.271e-4, rtol=2e-3)
     np.testing.assert_allclose(float(_merge.resolvable_radius(sun)), r_min, rtol=1e-5)
-    for r in (1e-5, 3.4e-4, 3.55e-4, 3.57e-4, 3.6e-4, 5e-3):
+    for r in (1e-5, 2.2e-4, 2.265e-4, 2.277e-4, 2.3e-4, 5e-3):
         g = _hashgrid.build(*(jnp.asarray(pts[:, k]) for k in range(3)), None, r * rb,
                             table_size=16, dtype=jnp.float32)
         assert bool(g.precise) == (r * rb > r_min), (r, bool(g.precise))
 
 
 def test_too_small_a_radius_stays_at_the_floor(sun):
-    # a first radius 356x below the limit: the pass runs at the floor (1.01 x the limit),
+    # a first radius 227x below the limit: the pass runs at the floor (1.01 x the limit),
     # the grid resolves it, and the render's note says so from the first pass
     cfg = RenderConfig(algorithm="vcm", max_depth=4, radius=1e-6)
     r_min, _ = _merge.precise_radius(sun)
@@ -64,10 +66,10 @@ def test_too_small_a_radius_stays_at_the_floor(sun):
 
 
 def test_a_schedule_that_reaches_it_stays_there(sun):
-    # alpha 0.1: the surface radius r_1 i^(-0.45), the medium's r_1 i^(-0.3); r_1 = 4e-4
-    # (above the 3.596e-4 floor) reaches it at pass 2 (0.73 of itself) on surfaces, at pass
-    # 2 in the medium (0.81): from then on both stay at the floor, never below
-    cfg = RenderConfig(algorithm="ppm", radius=4e-4, alpha=0.1)
+    # alpha 0.1: the surface radius r_1 i^(-0.45), the medium's r_1 i^(-0.3); r_1 = 2.6e-4
+    # (above the 2.294e-4 floor) reaches it at pass 2 on surfaces (0.73 of itself: 1.90e-4)
+    # and in the medium (0.81: 2.11e-4): from then on both stay at the floor, never below
+    cfg = RenderConfig(algorithm="ppm", radius=2.6e-4, alpha=0.1)
     r_min, _ = _merge.precise_radius(sun)
     floor = _merge.FLOOR_MARGIN * r_min
     assert _merge.radius_floor_note(sun, cfg, 1) is None
@@ -93,7 +95,7 @@ def test_cli_renders_on_with_one_warning_line(tmp_path, capsys):
 def test_no_imprecise_pass_under_a_users_jit(sun, alg):
     # A user's own jit has no host driver: the floor is in the traced pass itself. One
     # program (the radius schedule is traced through the pass index): alpha 0.1 gives
-    # r_i = r_1 i^(-0.3), so r_1 = 4e-4 would be 2.5e-5 at pass 10^4, 14x below the grid's
+    # r_i = r_1 i^(-0.3), so r_1 = 4e-4 would be 2.5e-5 at pass 10^4, 9x below the grid's
     # limit; the grid's flag stays down there and the images stay finite
     cfg = RenderConfig(algorithm=alg, max_depth=3, radius=4e-4, alpha=0.1)
     f = jax.jit(jaxvcm.render_pass, static_argnums=2)

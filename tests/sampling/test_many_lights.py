@@ -73,8 +73,12 @@ def test_program_does_not_grow_with_lights_or_waves(algorithm):
 
 def _mixed() -> dict:
     """Lights of every kind a connection reads, two of some kinds (groups of one and of
-    two members), in the pool (its geometry bounds the sun's disk)."""
+    two members), in the pool. The scene's box (the sun's disk, the lights' selection by
+    power) is its surfaces', lights' rects and spheres included: a small diffuse rect at
+    the box's top corner keeps the box the same whichever lights a scene holds."""
     d = S.shipped_doc("pool", 8, 8)
+    d["shapes"].append({"type": "rect", "center": [0.9, 3.1, 0.9], "normal": [0.0, -1.0, 0.0],
+                        "size": [0.1, 0.1], "material": "wall"})
     rect = d["lights"][0]
     rect2 = copy.deepcopy(rect)
     rect2.update(center=[-0.4, 2.5, 0.3], size=[0.3, 0.1], radiance=[300.0, 200.0, 100.0])
@@ -115,6 +119,7 @@ def test_each_light_of_many_behaves_as_alone():
 
     for i in range(len(d["lights"])):
         alone = jaxvcm.scene_from_dict({**d, "lights": [d["lights"][i]]})
+        np.testing.assert_array_equal(np.asarray(alone.bounds), np.asarray(many.bounds))
         mid = 0.5 * (cdf[i] + cdf[i + 1])  # picks light i in the mixed scene
         for uu in u[:4]:
             sm, em, Lem, pm, ptm, pdm, tom = evaluate(many, jnp.float32(mid), uu)
