@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import textwrap
 
 import numpy as np
 
@@ -17,8 +18,6 @@ from ._spectral import SpectralFitResult, absorption_band
 
 def _wrap(text: str, width: int = 70) -> str:
     """A failed fit's verdict for a figure title (lines of at most `width` characters)."""
-    import textwrap
-
     return "\n".join(textwrap.wrap(text, width))
 
 
