@@ -98,12 +98,14 @@ class Tuning:
                      3 rr_depth on, else off).
     chunks:          a pass's camera and light paths are traced in this many chunks, one
                      after the other (`lax.scan`), so its memory is that of 1/chunks of
-                     its paths (`_memory.chunks_for_memory`). Chunk c holds the paths
-                     c N/chunks .. (c + 1) N/chunks - 1 and as many light paths; its camera
-                     vertices merge with its own photons (eta = pi r^2 N/chunks) while every
-                     chunk's light paths splat onto the whole film with 1/N: an unbiased
-                     pass whose MIS counts are what each technique sees. With chunks > 1
-                     the samples differ from one chunk's (so does the image, within noise).
+                     its paths (`_memory.chunks_for_memory`), and so are its int32
+                     indices (`_integrator.min_chunks`: a chunk's are below 2^31).
+                     Chunk c holds the paths c N/chunks .. (c + 1) N/chunks - 1 and as
+                     many light paths; its camera vertices merge with its own photons
+                     (eta = pi r^2 N/chunks) while every chunk's light paths splat onto
+                     the whole film with 1/N: an unbiased pass whose MIS counts are
+                     what each technique sees. With chunks > 1 the samples differ from
+                     one chunk's (so does the image, within noise).
     merge_capacity:  static bound on hash-grid candidates per gather point; overflow is
                      flagged in the diagnostics and the host re-runs the pass with more room.
     photon_capacity: photons (valid light vertices) the hash grid holds per chunk; 0 = half
@@ -143,7 +145,9 @@ class RenderConfig:
     rr_depth:    Russian roulette starts after this many segments (>= max_depth: off).
     mis:         "power" (beta = 2) or "balance" heuristic.
     march_steps: uniform bracketing segments of the heightfield intersector.
-    spp:         camera paths per pixel per pass.
+    spp:         camera paths per pixel per pass; a pass's width x height x spp paths are at
+                 most 2^31 - 1 (int32 path numbers: 7 spp at 16384 x 16384; more samples
+                 come from more passes), refused before tracing otherwise.
     radius:      merging radius of the first pass, as a fraction of the scene's bounding
                  radius; pass i uses r_1 i^((alpha - 1) / 2) (progressive photon mapping).
     alpha:       radius reduction exponent (0 < alpha < 1).

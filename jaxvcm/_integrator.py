@@ -90,7 +90,8 @@ class TechniqueImages(eqx.Module):
 
 
 class PassStats(eqx.Module):
-    """What a pass counted, besides its image."""
+    """What a pass counted, besides its image (int32 counts; summed over chunks they
+    saturate at 2^31 - 1)."""
 
     camera_vertices: Int[Array, ""]
     light_vertices: Int[Array, ""]
@@ -157,13 +158,78 @@ def _dims(scene: Scene, cfg: RenderConfig):
     return P, P * cfg.spp // cfg.tuning.chunks, cfg.max_depth, cam.origin.dtype
 
 
+# ---- int32 indices: the library runs with x64 off, so every index is an int32. Within a
+# chunk of N paths the largest flat index space is `index_factor(cfg)` N items (a work
+# queue over (technique, path) items, the hash grid's photon slots and table); keeping it
+# at most INDEX_ITEMS leaves every index, padding and fill value included (a queue pads
+# to less than twice its items, the table is the power of two above its photons), below
+# 2^31. Across chunks only path numbers (pixel = path mod pixels) and counts remain, hence
+# MAX_PASS_PATHS. Chunks are chosen so that both hold (`min_chunks`); `check_chunks`
+# refuses a configuration that breaks them before anything is traced.
+INDEX_ITEMS = 1 << 30
+MAX_PASS_PATHS = (1 << 31) - 1
+
+
+def index_factor(cfg: RenderConfig) -> int:
+    """Flat items per path of the largest index space of a chunk: the D + 1 vertex rows of a
+    subpath (emitter hits, next-event estimation, light tracing, manifold NEE, photons and
+    gather points queue at most D items per path), the trace's two lanes per path, the
+    connections' D (D - 1) / 2 (s, t) pairs, the glints' light samples per path."""
+    D = cfg.max_depth
+    f = max(2, D + 1)
+    if cfg.techniques.connections:
+        f = max(f, D * (D - 1) // 2)
+    if cfg.glints:
+        f = max(f, glints.SAMPLES)
+    return f
+
+
+def max_chunk_paths(cfg: RenderConfig) -> int:
+    """The most paths one chunk may hold so that its indices fit int32 (INDEX_ITEMS)."""
+    return INDEX_ITEMS // index_factor(cfg)
+
+
+def fewest_chunks(n: int, most: int) -> int:
+    """The fewest chunks k dividing n paths with n / k <= most (k = n at worst)."""
+    if n <= most:
+        return 1
+    want = -(-n // max(most, 1))
+    best = n
+    d = 1
+    while d * d <= n:  # the divisors of n in pairs (d, n / d)
+        if n % d == 0:
+            for k in (d, n // d):
+                if want <= k < best:
+                    best = k
+        d += 1
+    return best
+
+
+def min_chunks(scene: Scene, cfg: RenderConfig) -> int:
+    """The fewest chunks whose indices fit int32 (`max_chunk_paths`)."""
+    cam = scene.camera
+    return fewest_chunks(cam.height * cam.width * cfg.spp, max_chunk_paths(cfg))
+
+
 def check_chunks(scene: Scene, cfg: RenderConfig) -> None:
-    """The chunks must split the pass's paths evenly."""
+    """The pass's paths must fit int32 (MAX_PASS_PATHS), the chunks must split them evenly,
+    and each chunk's indices must fit int32 (`max_chunk_paths`)."""
     cam = scene.camera
     n = cam.height * cam.width * cfg.spp
-    if n % cfg.tuning.chunks:
-        raise ValueError(f"config.tuning.chunks: {cfg.tuning.chunks} does not divide the pass's "
-                         f"{n} paths ({cam.width} x {cam.height} x {cfg.spp} spp)")
+    k = cfg.tuning.chunks
+    size = f"{cam.width} x {cam.height} x {cfg.spp} spp"
+    if n > MAX_PASS_PATHS:
+        raise ValueError(f"config.spp: a pass of {size} = {n} paths is more than "
+                         f"{MAX_PASS_PATHS} (int32 path numbers); use fewer spp per pass "
+                         f"and more passes")
+    if n % k:
+        raise ValueError(f"config.tuning.chunks: {k} does not divide the pass's "
+                         f"{n} paths ({size})")
+    if n // k > max_chunk_paths(cfg):
+        raise ValueError(f"config.tuning.chunks: chunks of {n // k} paths ({size} in {k}) "
+                         f"are more than the {max_chunk_paths(cfg)} whose indices fit int32 "
+                         f"({cfg.algorithm} at depth {cfg.max_depth}: {index_factor(cfg)} "
+                         f"items per path); use at least {min_chunks(scene, cfg)} chunks")
 
 
 def _path_pixels(scene: Scene, cfg: RenderConfig, st) -> Int[Array, " N"]:
@@ -470,6 +536,7 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
     the gather's sums are then max_depth - 1 times as wide."""
     if cfg.tuning.chunks != 1:
         raise ValueError(f"config.tuning.chunks: technique images need one chunk, got {cfg.tuning.chunks}")
+    check_chunks(scene, cfg)
     st = PassState(key=key, pass_index=pass_index, merge_lengths=merge_lengths)
     for _, stage in pass_stages(cfg):
         st = stage(scene, cfg, st)
@@ -537,6 +604,12 @@ def _chunk_film(scene: Scene, cfg: RenderConfig, st: PassState):
     return img, bad, PassStats(cv, lv, *_merge_stats(st))
 
 
+def _count_add(a, b):
+    """a + b of two non-negative int32 counts, saturating at 2^31 - 1 (the counts of a pass
+    of many chunks may outgrow int32; its indices do not, `check_chunks`)."""
+    return a + jnp.minimum(b, jnp.iinfo(jnp.int32).max - a)
+
+
 def _integrate_chunks(scene, key, cfg, pass_index):
     cam = scene.camera
     H, W, C = cam.height, cam.width, scene.channels
@@ -548,14 +621,14 @@ def _integrate_chunks(scene, key, cfg, pass_index):
         for stage in stages:
             st = stage(scene, cfg, st)
         i2, b2, s2 = _chunk_film(scene, cfg, st)
-        stats = PassStats(stats.camera_vertices + s2.camera_vertices,
-                          stats.light_vertices + s2.light_vertices,
+        stats = PassStats(_count_add(stats.camera_vertices, s2.camera_vertices),
+                          _count_add(stats.light_vertices, s2.light_vertices),
                           stats.merge_overflow | s2.merge_overflow,
                           jnp.maximum(stats.merge_candidates, s2.merge_candidates),
                           stats.photon_overflow | s2.photon_overflow,
                           jnp.maximum(stats.merge_photons, s2.merge_photons),
                           stats.merge_imprecise | s2.merge_imprecise)
-        return (img + i2, bad + b2, stats), None
+        return (img + i2, _count_add(bad, b2), stats), None
 
     zero = jnp.zeros((), jnp.int32)
     init = (jnp.zeros((H * W, C), cam.origin.dtype), zero,

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 
+INT32_MAX = (1 << 31) - 1  # the queues' indices, fill values included, are int32
 MIN_ROUND = 1024  # narrower rounds cost more in per-round overhead than they save
 
 
@@ -42,6 +43,9 @@ def first_true(m, size: int):
     scatter, where `nonzero` takes two running counts and a scatter-add (fewer kernels in
     every queue of the pass)."""
     M = m.shape[0]
+    if max(M, size) > INT32_MAX:  # `_integrator.check_chunks` keeps a chunk's items below
+        raise ValueError(f"config.tuning.chunks: a work queue of {M} items ({size} slots) "
+                         f"is beyond int32 indices; use more chunks")
     pos = jnp.where(m, running_count(m) - 1, size)
     return jnp.full((size,), M, jnp.int32).at[pos].set(jnp.arange(M, dtype=jnp.int32),
                                                        mode="drop")

@@ -292,10 +292,13 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     seconds; the passes are those an uninterrupted render draws, so the result equals it to
     float32 rounding of the stored mean. `memory` (bytes, or '4G'): trace each pass in as
     many chunks as keep its working memory under it (`_memory.chunks_for_memory`, which
-    sets `config.tuning.chunks`); None: the device's memory where it reports one
-    (`_memory.auto_chunks`; on the CPU one chunk). `techniques`: `out`'s EXR also holds
-    every technique's image as a layer (`technique_layer` names them; their sum is the
-    image), from `technique_images(merge_lengths=True)` on one device in one chunk."""
+    sets `config.tuning.chunks`); None: the device's memory, or on the CPU the host's
+    available memory (`_memory.auto_chunks`). Either way the chunks keep every index within
+    int32, and an image whose buffers cannot fit the memory however many chunks is refused
+    before any pass, in one line (`_memory.check_host`, `auto_chunks`). `techniques`:
+    `out`'s EXR also holds every technique's image as a layer (`technique_layer` names
+    them; their sum is the image), from `technique_images(merge_lengths=True)` on one
+    device in one chunk."""
     check_budget(passes, time)
     local = _devices.resolve_devices(devices)
     devs = _devices.mesh_devices(local)
@@ -303,15 +306,16 @@ def render(scene: Scene, algorithm: str = "pt", passes: int | None = None,
     if config.algorithm != algorithm:
         raise ValueError(f"algorithm: {algorithm!r} disagrees with config.algorithm "
                          f"{config.algorithm!r}")
+    _memory.check_host(scene)  # the image's host buffers: refused before anything runs
     if techniques:
         return _render_techniques(scene, config, passes, time, seed, snapshot_every, out,
                                   progress, exposure, scene_path, devices, resume, memory)
     if memory is not None:
         budget = _memory.parse_bytes(memory) if isinstance(memory, str) else int(memory)
-        config = config.tuned(chunks=_memory.chunks_for_memory(scene, config,
-                                                                              budget))
-    else:  # the device's own memory, where its runtime reports it (GPUs; not the CPU)
-        config = config.tuned(chunks=_memory.auto_chunks(scene, config, local[0]))
+        config = config.tuned(chunks=_memory.chunks_for_memory(scene, config, budget))
+    else:  # the device's own memory (GPUs), or the host's (the CPU)
+        config = config.tuned(chunks=_memory.auto_chunks(scene, config, local[0],
+                                                         len(local)))
     state = {"config": config}
     start = None
     if resume:

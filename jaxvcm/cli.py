@@ -64,7 +64,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _err(msg) -> int:
-    msg = " ".join(str(msg).split()) or "unknown error"
+    msg = str(msg).split("\n--------------------\n")[0]  # without JAX's traceback note
+    msg = " ".join(msg.split()) or "unknown error"
     print(f"{PROG}: error: {msg}", file=sys.stderr, flush=True)
     return 2
 
@@ -170,8 +171,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--memory", default=None, metavar="SIZE",
                    help="working memory per pass, e.g. 4G: each pass is traced in as many "
                         "chunks of paths as keep it under SIZE (measured by compiling two "
-                        "probe chunks); default: the device's memory where it reports one, "
-                        "else one chunk")
+                        "probe chunks); default: the device's memory, on the CPU the "
+                        "host's available memory")
     r.add_argument("--resume", action="store_true",
                    help="continue the render in --out (same scene, seed, algorithm and "
                         "settings) up to --passes in all, or for --time more seconds")

@@ -307,16 +307,25 @@ def prefetch_imports() -> threading.Thread:
     return t
 
 
+SRGB_STRIP = 1 << 20  # values per strip of `to_srgb8`
+
+
 def to_srgb8(image, exposure: float = 0.0) -> np.ndarray:
-    """Linear radiance -> 8-bit sRGB preview (exposure in stops; NaN/Inf shown as 0/1)."""
+    """Linear radiance -> 8-bit sRGB preview (exposure in stops; NaN/Inf shown as 0/1),
+    computed in strips of rows (about SRGB_STRIP values each), so that its float64
+    temporaries do not scale with the image (a 16384^2 image would need some 40 GB)."""
     import colour
 
-    a = _check_image(image).astype(np.float64) * 2.0 ** float(exposure)
-    a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=0.0)
-    a = np.clip(a, 0.0, 1.0)
-    enc = np.asarray(colour.cctf_encoding(a, function="sRGB"), dtype=np.float64)
-    out = np.round(np.clip(enc, 0.0, 1.0) * 255.0).astype(np.uint8)
-    C = out.shape[2]
+    img = _check_image(image)
+    H, W, C = img.shape
+    out = np.empty((H, W, C), np.uint8)
+    step = max(1, SRGB_STRIP // (W * C))
+    for y in range(0, H, step):  # in strips of rows: the float64 temporaries stay small
+        a = img[y:y + step].astype(np.float64) * 2.0 ** float(exposure)
+        a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=0.0)
+        a = np.clip(a, 0.0, 1.0)
+        enc = np.asarray(colour.cctf_encoding(a, function="sRGB"), dtype=np.float64)
+        out[y:y + step] = np.round(np.clip(enc, 0.0, 1.0) * 255.0).astype(np.uint8)
     if C == 1:
         out = np.repeat(out, 3, axis=2)
     elif C == 2:

@@ -52,7 +52,8 @@ DIRECTION = Range(-MAX_LENGTH, MAX_LENGTH)  # components; normalised, must be no
 ANY = Range(-MAX_LENGTH, MAX_LENGTH)  # a number without its own range
 FOV = Range(0.01, 179.0, "degrees")
 MAX_FILE_BYTES = 16 << 20  # a scene or fit file is a few kB; none is read past this
-MAX_PIXELS = 16384  # per side: a 16384^2 float32 RGB film is 3.2 GB
+MAX_PIXELS = 16384  # per side: a 16384^2 float32 RGB film is 3.2 GB; a pass of 2^28 paths
+# keeps its path numbers and, in chunks (`_integrator.min_chunks`), its indices within int32
 PIXELS = Range(1, MAX_PIXELS)
 ALBEDO = Range(0.0, 1.0)  # materials and emitters alike (energy conservation)
 RADIANCE = Range(0.0, 1e15, "W/(m^2 sr)")  # emitted power stays < 1e29 W
@@ -258,7 +259,9 @@ CAMERA = Table("camera", "table", "A pinhole camera.", (
           "direction.", [0.0, 1.0, 0.0], DIRECTION,
           note="not parallel to the view direction"),
     Field("fov", "number", "Vertical field of view.", range=FOV),
-    Field("width", "integer", "Image width in pixels (`--width` overrides it).", range=PIXELS,
+    Field("width", "integer", "Image width in pixels (`--width` overrides it). Any size in "
+          "range renders: a pass too large for the memory runs in chunks; an image whose "
+          "film and host buffers exceed the memory is refused before rendering.", range=PIXELS,
           unit="pixels"),
     Field("height", "integer", "Image height in pixels (`--height` overrides it).",
           range=PIXELS, unit="pixels"),

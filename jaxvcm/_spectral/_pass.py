@@ -12,7 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from .. import _memory
 from .._config import RenderConfig
+from .._integrator import min_chunks
 from .._render import Diagnostics, check_budget, pass_key, progressive, render_pass, with_retry
 from ._scene import LAMBDA_MIN, LAMBDA_RANGE, SpectralScene
 
@@ -94,9 +96,15 @@ def render_spectral(spectral: SpectralScene, passes: int | None = 16, seed: int 
     merge-capacity re-runs, time budget, snapshots and progress as `render`): passes are
     averaged in XYZ and converted to linear sRGB (colour-science) for the outputs. Returns
     (linear sRGB [H, W, 3], XYZ [H, W, 3]); with `out`, writes the sRGB image as EXR + PNG
-    + JSON."""
+    + JSON. An image whose host buffers exceed the host's memory is refused before any
+    pass (`_memory.check_host`), and a pass too large for int32 indices is traced in
+    chunks (`_integrator.min_chunks`); the pass's memory is not budgeted (one chunk)."""
     check_budget(passes, time)
-    state = {"config": config or RenderConfig()}
+    config = config or RenderConfig()
+    _memory.check_host(spectral.scene)  # refused before anything runs
+    if config.tuning.chunks == 1:  # as many chunks as keep the indices within int32
+        config = config.tuned(chunks=min_chunks(spectral.scene, config))
+    state = {"config": config}
 
     def run_pass(i):
         xyz, diag, state["config"] = with_retry(render_pass_spectral_jit, spectral,

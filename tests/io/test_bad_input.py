@@ -317,7 +317,8 @@ def test_unwritable_output_named(args, out, capsys):
 
 
 @pytest.mark.parametrize("flag,value", [
-    ("--width", "100000"), ("--height", "1" + "0" * 30), ("--width", "7" * 500),
+    ("--width", "100000"), ("--width", "16385"), ("--height", "1" + "0" * 30),
+    ("--width", "7" * 500),
     ("--exposure", "1e308"), ("--seed", str(10**30)), ("--max-depth", "100000"),
     ("--radius", "1e308"), ("--width", "1e3"),
 ])
