@@ -146,8 +146,12 @@ def check_budget(passes, time):
 def progressive(run_pass, to_image, meta, *, passes=None, time=None, out=None,
                 snapshot_every=None, progress=True, exposure=0.0, total=None, start=None,
                 to_layers=None):
-    """Average independent passes until `passes` are done or `time` seconds have elapsed (at
-    least one pass). `run_pass(i) -> (estimates, nonfinite count)`: the estimate ndarray of
+    """Average independent passes until `passes` are done or `time` seconds of rendering
+    have elapsed after the first pass (at least one pass). The first pass of a run includes
+    the compilation (seconds to a minute from an empty cache), so the time budget starts
+    when it is done: a short budget renders for its time, not one pass. The record's
+    "first_pass_seconds" is that pass's wall time (compilation included) and "seconds" the
+    whole run's. `run_pass(i) -> (estimates, nonfinite count)`: the estimate ndarray of
     pass i, a list of them (passes i, i + 1, ...), or the count of passes it added to sums
     kept on the devices, whose float64 total `total()` returns (`_devices.DeviceSum`).
     `start = (passes done, their float64 sum)` resumes an earlier render. `to_image(mean)`
@@ -187,8 +191,12 @@ def _progressive(run_pass, to_image, meta, passes, time, out, snapshot_every, pr
     bar = _io.Progress(total=passes, time_budget=time, enabled=progress and lead)
     bar.start()
 
+    first = None  # wall time of this run's first pass (compilation included)
+
     def record(n, seconds, image, snapshot):
         m = dict(meta(n, seconds, nonfinite, snapshot))
+        if first is not None:
+            m["first_pass_seconds"] = round(first, 3)
         return {**m, "warnings": render_warnings(image, nonfinite) + m.pop("warnings", [])}
 
     def mean():
@@ -206,13 +214,21 @@ def _progressive(run_pass, to_image, meta, passes, time, out, snapshot_every, pr
                 i += int(ests)  # added on the devices
             else:
                 for est in (ests if isinstance(ests, list) else [ests]):
-                    est = np.asarray(est, dtype=np.float64)
-                    acc = est if acc is None else acc + est  # in pass order, in float64
+                    if acc is None:  # in pass order, in float64, in place (a large
+                        acc = np.array(est, dtype=np.float64)  # image's sum is one buffer)
+                    else:
+                        acc += np.asarray(est, dtype=np.float64)
                     i += 1
+                ests = est = None  # no second copy of a pass held while the next runs
             nonfinite += int(bad)
             now = _time.perf_counter()
+            if first is None:
+                first = now - t0
+                if time is not None:  # the ETA of the budget, which starts now
+                    bar.time_budget = time + first
             bar.update(i, now - t0)
-            done = (passes is not None and i >= passes) or (time is not None and now - t0 >= time)
+            done = (passes is not None and i >= passes) or (
+                time is not None and now - t0 - first >= time)
             last_snap = now if last_snap is None else last_snap
             snap = (bool(out) and snapshot_every is not None and not done
                     and now - last_snap >= snapshot_every)

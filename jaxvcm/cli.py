@@ -153,7 +153,8 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--passes", type=_pos_int(), metavar="N",
                    help="number of passes (1 sample per pixel each)")
     g.add_argument("--time", type=_finite_float(positive=True), metavar="SEC",
-                   help="render for this many seconds (default: 60 if --passes is not given)")
+                   help="render for this many seconds after the first pass, which includes "
+                        "the compilation (default: 60 if --passes is not given)")
     r.add_argument("--seed", type=_pos_int(lo=0, hi=2**32 - 1), default=0)
     r.add_argument("--width", type=_pos_int(hi=MAX_PIXELS), metavar="W")
     r.add_argument("--height", type=_pos_int(hi=MAX_PIXELS), metavar="H")

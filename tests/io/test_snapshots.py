@@ -135,3 +135,23 @@ def _dead_pid() -> int:
     p = subprocess.Popen([sys.executable, "-c", "pass"])
     p.wait()
     return p.pid
+
+
+def test_time_budget_starts_after_the_first_pass(tmp_path):
+    # The first pass compiles (here: 0.6 s of "compilation"), the others take 10 ms each.
+    # A 0.3 s budget counted from the start would end after that first pass; counted after
+    # it, it renders ~0.3 / 0.01 = 30 more (at least 10 on a loaded machine), and the
+    # record says how long the first pass took (>= 0.6 s) and the whole run (>= 0.9 s)
+    from jaxvcm._render import progressive
+
+    def run_pass(i):
+        time.sleep(0.6 if i == 0 else 0.01)
+        return np.ones((2, 3, 3)), 0
+
+    out = tmp_path / "t.exr"
+    _, n, _ = progressive(run_pass, lambda m: m, lambda n, s, *a: {"passes": n, "seconds": s},
+                          time=0.3, out=str(out), progress=False)
+    assert n >= 10
+    rec = json.loads(out.with_suffix(".json").read_text())
+    assert rec["passes"] == n and rec["first_pass_seconds"] >= 0.6
+    assert rec["seconds"] >= rec["first_pass_seconds"] + 0.3
