@@ -64,6 +64,14 @@ def fit_range(name: str, linear: bool) -> Range | None:
     return Range(lo, r.hi, r.unit, lo_open=True, hi_open=True)
 
 
+def _to_x(xp, u, consts):
+    """The map u -> x of `Bounds` in the array module `xp` (jax.numpy or numpy)."""
+    lo_on, hi_on, lo, hi, a_lo, a_hi, b = consts
+    x_hi = hi - b * xp.exp(xp.minimum(a_hi - u, 0.0) / b)
+    x_lo = lo + b * xp.exp(xp.minimum(u - a_lo, 0.0) / b)
+    return xp.where(hi_on & (u > a_hi), x_hi, xp.where(lo_on & (u < a_lo), x_lo, u))
+
+
 @dataclasses.dataclass(frozen=True)
 class Bounds:
     """Per parameter: x-space bounds lo < hi (ln p or p; +-inf: none) and the band width."""
@@ -100,19 +108,13 @@ class Bounds:
     def to_x(self, u):
         """u -> x (JAX, differentiable; forward and reverse mode stay finite: each tail's
         exponent is clamped at 0 where the tail is not taken)."""
-        lo_on, hi_on, lo, hi, a_lo, a_hi, b = (jnp.asarray(c, u.dtype) if c.dtype != bool
-                                               else jnp.asarray(c) for c in self._consts())
-        x_hi = hi - b * jnp.exp(jnp.minimum(a_hi - u, 0.0) / b)
-        x_lo = lo + b * jnp.exp(jnp.minimum(u - a_lo, 0.0) / b)
-        return jnp.where(hi_on & (u > a_hi), x_hi, jnp.where(lo_on & (u < a_lo), x_lo, u))
+        consts = tuple(jnp.asarray(c, u.dtype) if c.dtype != bool else jnp.asarray(c)
+                       for c in self._consts())
+        return _to_x(jnp, u, consts)
 
     def to_x_host(self, u) -> np.ndarray:
         """u -> x (NumPy, float64): `to_x` on the host."""
-        lo_on, hi_on, lo, hi, a_lo, a_hi, b = self._consts()
-        u = np.asarray(u, np.float64)
-        x_hi = hi - b * np.exp(np.minimum(a_hi - u, 0.0) / b)
-        x_lo = lo + b * np.exp(np.minimum(u - a_lo, 0.0) / b)
-        return np.where(hi_on & (u > a_hi), x_hi, np.where(lo_on & (u < a_lo), x_lo, u))
+        return _to_x(np, np.asarray(u, np.float64), self._consts())
 
     def to_u(self, x) -> np.ndarray:
         """x -> u (NumPy, float64), the inverse of `to_x`; x strictly inside (lo, hi)."""
