@@ -32,6 +32,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._config import RenderConfig
+from .._integrator import max_chunk_paths
+from .._memory import device_budget, gib
 from .._render import pass_key, render_pass
 from .._scene import Scene
 from .._spectral import SpectralScene, render_pass_spectral
@@ -106,6 +108,33 @@ def _resolve(scenes, regions, space: str) -> tuple[list[Scene], list[Region], li
             raise ValueError(f"regions.{r.name}.uncertainty: expected 3 numbers > 0")
         out.append(dataclasses.replace(r, scene=si, rect=(x0, y0, x1, y1)))
     return scenes, out, names
+
+
+def size_checks(scenes: Sequence[Scene], config: RenderConfig):
+    """A fit's image size, checked before and after its solver compiles: each pass of a fit
+    runs in one chunk, so every scene's paths must fit int32 indices
+    (`_integrator.max_chunk_paths`, refused here, before any work); the returned callable
+    refuses, once XLA has compiled the solver (`levenberg_marquardt`'s `memory`), a program
+    larger than the device's memory budget (`_memory.device_budget`: the CPU's from the
+    host's available memory). Both name the fit config's `render.width, render.height`."""
+    big = max(scenes, key=lambda sc: sc.camera.width * sc.camera.height)
+    cam = big.camera
+    size = f"{cam.width} x {cam.height}"
+    most = max_chunk_paths(config)
+    if cam.width * cam.height * config.spp > most:
+        raise ValueError(f"render.width, render.height: a fit renders each pass in one "
+                         f"chunk, and {size} x {config.spp} spp paths are more than the "
+                         f"{most} whose indices fit int32 ({config.algorithm} at depth "
+                         f"{config.max_depth}); fit a smaller image")
+
+    def memory(nbytes: int) -> None:
+        budget = device_budget(jax.devices()[0])
+        if budget is not None and nbytes > budget:
+            raise ValueError(f"render.width, render.height: the fit's compiled solver at "
+                             f"{size} needs about {gib(nbytes)}, more than the "
+                             f"{gib(budget)} there is for it; fit a smaller image")
+
+    return memory
 
 
 def default_uncertainty(target, space: str) -> np.ndarray:

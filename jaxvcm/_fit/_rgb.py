@@ -39,7 +39,7 @@ from .._config import RenderConfig
 from ._bounds import SIGMA_FIT, Bounds, bound_problems
 from ._colour import SPACES, delta_e2000
 from ._config import FREE
-from ._model import Region, _resolve, region_colours_fn, residuals
+from ._model import Region, _resolve, region_colours_fn, residuals, size_checks
 from ._solver import MAX_DELTA_E, assess, levenberg_marquardt
 
 
@@ -187,6 +187,7 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
     pdtype = jnp.result_type(float)
     theta_host0 = np.concatenate([np.log(sa0), np.log(ss0)])
     theta_full0 = jnp.asarray(theta_host0, pdtype)
+    memory = size_checks(scenes, config)  # the image fits int32 indices; later, memory
     colours = region_colours_fn(scenes, regions, config, passes, seed)
     residual_fn, targets, unc = residuals(
         colours, regions, space, "srgb",
@@ -195,7 +196,8 @@ def fit(scenes, regions: Sequence[Region], *, space: str = "srgb",
         w0.sigma_a.dtype)
     sol = levenberg_marquardt(residual_fn, jnp.asarray(bounds.to_u(theta_host0[free_idx]),
                                                        pdtype),
-                              rtol=rtol, atol=atol, max_steps=max_steps, progress=progress)
+                              rtol=rtol, atol=atol, max_steps=max_steps, progress=progress,
+                              memory=memory)
     theta = np.asarray(theta_full0, np.float64).copy()
     theta[free_idx] = bounds.to_x_host(sol.y)
     for e in sol.history:  # the solver's variable -> ln sigma

@@ -88,9 +88,13 @@ def assess(result: str, steps: int, delta_e, region_names, max_delta_e: float,
 
 def levenberg_marquardt(residual_fn: Callable, y0, *, rtol: float, atol: float,
                         max_steps: int, progress: bool = False,
-                        step_size: bool = True) -> Solution:
+                        step_size: bool = True,
+                        memory: Callable[[int], None] | None = None) -> Solution:
     """Minimise 0.5 |r(y)|^2 from y0; residual_fn(y, args) -> (r [m], aux) with aux a
-    boolean flag (merge overflow). step_size: record the LM step size in the history."""
+    boolean flag (merge overflow). step_size: record the LM step size in the history.
+    memory: called with the bytes XLA's memory analysis gives the compiled solver
+    (temporaries, arguments, outputs) before it runs; it raises to refuse a fit that
+    cannot fit (the program is compiled ahead of time, so the check costs nothing)."""
     import optimistix as optx
 
     fields = ("num_steps", "loss_this_step", "loss_last_accepted_step") + \
@@ -134,7 +138,13 @@ def levenberg_marquardt(residual_fn: Callable, y0, *, rtol: float, atol: float,
         return sol.value, sol.result, sol.stats["num_steps"], sol.aux, J, r1
 
     t1 = _time.perf_counter()
-    y, result, nsteps, overflow, J, r1 = solve(y0)
+    compiled = solve.lower(y0).compile()
+    if memory is not None:
+        m = compiled.memory_analysis()
+        if m is not None:
+            memory(int(m.temp_size_in_bytes + m.argument_size_in_bytes
+                       + m.output_size_in_bytes))
+    y, result, nsteps, overflow, J, r1 = compiled(y0)
     y = np.asarray(jax.block_until_ready(y), np.float64)
     jax.effects_barrier()  # the callbacks have run
     seconds = _time.perf_counter() - t1

@@ -35,7 +35,8 @@ from .._spectral import WaterModel
 from ._bounds import Bounds, bound_problems, fit_range
 from ._colour import SPACES, delta_e2000
 from ._config import WATER_FIELDS
-from ._model import Region, _named, _resolve, residuals, spectral_region_colours_fn
+from ._model import (Region, _named, _resolve, residuals, size_checks,
+                     spectral_region_colours_fn)
 from ._solver import MAX_DELTA_E, assess, levenberg_marquardt
 
 
@@ -202,6 +203,7 @@ def fit_spectral(spectral, regions: Sequence[Region],
     theta0 = np.where(lin, p0, np.log(np.where(lin, 1.0, p0)))
     bounds = Bounds.of(ranges, ~lin)
     dtype = spectral[0].scene.bounds.dtype
+    memory = size_checks([s.scene for s in spectral], config)  # int32 indices; memory
     colours = spectral_region_colours_fn(spectral, regions, params, config, passes, seed,
                                          linear)
     residual_fn, targets, unc = residuals(colours, regions, space, "xyz",
@@ -209,7 +211,7 @@ def fit_spectral(spectral, regions: Sequence[Region],
     sol = levenberg_marquardt(residual_fn, jnp.asarray(bounds.to_u(theta0),
                                                        jnp.result_type(float)),
                               rtol=rtol, atol=atol, max_steps=max_steps, progress=progress,
-                              step_size=False)
+                              step_size=False, memory=memory)
     y = bounds.to_x_host(sol.y)  # theta: ln p or p
     for e in sol.history:  # the solver's variable -> theta
         e["theta"] = bounds.to_x_host(e["theta"]).tolist()

@@ -258,3 +258,42 @@ def test_target_darker_than_the_scene_ends_at_a_bound():
     assert d["converged"] is True and d["at_bound"] == res.at_bound
     assert d["problems"] == res.problems and d["verdict"] == res.verdict
     assert res.summary().splitlines()[-1] == res.verdict
+
+
+def test_fit_too_large_for_int32_is_refused_before_any_work(tmp_path, capsys):
+    # A fit renders each pass in one chunk: PT at depth 6 has D + 1 = 7 index items per
+    # path, so one chunk holds at most 2^30 / 7 = 153,391,689 paths, and 16384^2 x 1 spp =
+    # 268,435,456 paths cannot be indexed; refused in one line naming the config's fields,
+    # before a scene is rendered (it died with RESOURCE_EXHAUSTED after 50 s)
+    (tmp_path / "fit.toml").write_text(f"""
+[render]
+width = 16384
+height = 16384
+[scenes.pool]
+file = "{POOL_SKY.as_posix()}"
+[[regions]]
+name = "all"
+scene = "pool"
+rect = [0, 0, 4, 4]
+target = [0.1, 0.1, 0.1]
+""")
+    rc = main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert err[0].startswith("jaxvcm: error: render.width, render.height: a fit renders each "
+                             "pass in one chunk, and 16384 x 16384 x 1 spp paths are more "
+                             "than the 153391689"), err
+
+
+def test_fit_larger_than_memory_is_refused_once_compiled(monkeypatch):
+    # The solver is compiled ahead of time and XLA's memory analysis of it compared with the
+    # device's budget before it runs: a budget of 1 kB (no 4x4 fit's program is that small:
+    # its arguments alone are the scene) refuses it in one line, nothing run
+    from jaxvcm._fit import _model
+
+    monkeypatch.setattr(_model, "device_budget", lambda device: 1024)
+    scene = jaxvcm.load_scene(POOL_SKY, width=4, height=4)
+    with pytest.raises(ValueError, match=r"^render.width, render.height: the fit's compiled "
+                       r"solver at 4 x 4 needs about .* GiB, more than the 9.54e-07 GiB "):
+        jaxvcm.fit(scene, [Region("all", 0, WHOLE, (0.1, 0.1, 0.1))],
+                   config=RenderConfig(**RENDER), passes=4, free="sigma_a", max_steps=1)
