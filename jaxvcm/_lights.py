@@ -78,7 +78,8 @@ def member(scene: Scene, g: Group, light):
     in it (a genuine light of the kind, so the unpicked lanes compute finite values)."""
     if len(g.members) == 1:
         return g.members[0], light == g.members[0]
-    picked = jnp.asarray([k in g.members for k in range(scene.lights.count)])[light]
+    table = jnp.asarray([k in g.members for k in range(scene.lights.count)])
+    picked = table[jnp.maximum(light, 0)] & (light >= 0)  # -1 (no light) is in no group
     return jnp.where(picked, light, g.members[0]), picked
 
 

@@ -142,3 +142,14 @@ def test_each_light_of_many_behaves_as_alone():
             np.testing.assert_allclose(ptm, pta * sel[i], **close)
             np.testing.assert_allclose(em.pdf_pos, ea.pdf_pos * sel[i], **close)
             np.testing.assert_allclose(em.beta1, ea.beta1 / sel[i], **close)
+    # no light (-1, a vertex that is not on one) is in no group: its pdfs are 0, as they
+    # were when each light compared its own index (without the sun the last light is a
+    # point light of a two-member group, which index -1 would wrap to)
+    no_sun = jaxvcm.scene_from_dict({**d, "lights": d["lights"][:6]})
+    up = vec.Vec3(*(jnp.asarray(v, jnp.float32) for v in (0.0, 1.0, 0.0)))
+    none = jnp.int32(-1)
+    for sc in (many, no_sun):
+        assert float(L.light_point_pdf(sc, none, up)) == 0.0
+        assert float(L.emission_pdf_dir(sc, none, up, -up, p)) == 0.0
+        Le, pdf = L.emitted_surface(sc, none, up, -up, jnp.float32(1.0))
+        assert float(pdf) == 0.0 and not np.any(np.asarray(Le))
