@@ -193,13 +193,27 @@ RENDER = dict(algorithm="pt", max_depth=4, rr_depth=100)
 WHOLE = (0, 0, 4, 4)
 
 
+def _config(tmp_path, head: str) -> None:
+    """tmp_path / fit.toml: `head` (the [render] and [solver] tables) and one region, the
+    whole 4 x 4 image of pool_sky, with target grey 0.1."""
+    (tmp_path / "fit.toml").write_text(head + f"""
+[scenes.pool]
+file = "{POOL_SKY.as_posix()}"
+[[regions]]
+name = "all"
+scene = "pool"
+rect = [0, 0, 4, 4]
+target = [0.1, 0.1, 0.1]
+""")
+
+
 def test_fit_stopped_early_is_reported_and_exits_4(tmp_path, capsys):
     """max_steps = 1: optimistix's Cauchy termination compares two successive iterates, so
     a single step can never end "successful"; the result is nonlinear_max_steps_reached.
     The target 0.1 is reachable (between 0.069 and 0.134), but the start (the scene's
     sigma_a, colour 0.095 in red, 0.125 / 0.130 in green / blue) is 6.6 dE2000 from it and
     one step moves nothing: "fits badly" too."""
-    (tmp_path / "fit.toml").write_text(f"""
+    _config(tmp_path, """
 [render]
 algorithm = "pt"
 max_depth = 4
@@ -210,13 +224,6 @@ height = 4
 [solver]
 max_steps = 1
 free = "sigma_a"
-[scenes.pool]
-file = "{POOL_SKY.as_posix()}"
-[[regions]]
-name = "all"
-scene = "pool"
-rect = [0, 0, 4, 4]
-target = [0.1, 0.1, 0.1]
 """)
     out = tmp_path / "out"
     rc = main(["fit", str(tmp_path / "fit.toml"), "--out", str(out), "--quiet"])
@@ -265,17 +272,10 @@ def test_fit_too_large_for_int32_is_refused_before_any_work(tmp_path, capsys):
     # path, so one chunk holds at most 2^30 / 7 = 153,391,689 paths, and 16384^2 x 1 spp =
     # 268,435,456 paths cannot be indexed; refused in one line naming the config's fields,
     # before a scene is rendered (it died with RESOURCE_EXHAUSTED after 50 s)
-    (tmp_path / "fit.toml").write_text(f"""
+    _config(tmp_path, """
 [render]
 width = 16384
 height = 16384
-[scenes.pool]
-file = "{POOL_SKY.as_posix()}"
-[[regions]]
-name = "all"
-scene = "pool"
-rect = [0, 0, 4, 4]
-target = [0.1, 0.1, 0.1]
 """)
     rc = main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / "o"), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
