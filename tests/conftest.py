@@ -92,3 +92,38 @@ def _join_output_import_thread():
     for t in threading.enumerate():
         if t.name == "jaxvcm-prefetch-imports":
             t.join()
+
+
+# ---- where the suite's time goes (opt-in: JAXVCM_TEST_COMPILE_LOG=path.jsonl)
+# One JSON line per test: its wall time and the seconds JAX spent tracing, lowering and
+# compiling (or reading from the persistent cache) inside it, per function name, so the
+# programs that cost the suite most can be found and shared. Subprocesses (the CLI tests)
+# are not seen; their time shows as wall time without compile events.
+_COMPILE_LOG = os.environ.get("JAXVCM_TEST_COMPILE_LOG")
+if _COMPILE_LOG:
+    import json
+    import time
+
+    import jax.monitoring
+
+    _events: list = []
+    _names = {"/jax/core/compile/jaxpr_trace_duration": "trace",
+              "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+              "/jax/core/compile/backend_compile_duration": "compile"}
+
+    def _listen(event, seconds, **kw):
+        if event in _names and seconds > 0.05:
+            _events.append((_names[event], kw.get("fun_name", "?"), round(seconds, 3)))
+
+    jax.monitoring.register_event_duration_secs_listener(_listen)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        _events.clear()
+        start = time.perf_counter()
+        yield
+        wall = time.perf_counter() - start
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(f"{_COMPILE_LOG}.{worker}", "a") as f:
+            f.write(json.dumps({"test": item.nodeid, "wall": round(wall, 3),
+                                "events": list(_events)}) + "\n")

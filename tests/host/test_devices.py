@@ -1,17 +1,19 @@
 """Passes on several devices and processes (jaxvcm/_devices.py, _hosts.py).
 
 With 4 CPU devices (`--xla_force_host_platform_device_count=4`, in a subprocess: the flag
-must be set before jax starts), `render(..., devices=N)` for N = 1, 2, 4 gives the same
-image for the same passes, for PT and VCM, with a partial last batch (5 passes). The
+must be set before jax starts), `render(..., devices=N)` for N = 1 and 4 gives the same
+image for the same passes, for PT and VCM, with a partial last batch (5 passes on 4
+devices: a batch of 4 and a batch of 1). The
 tolerance is rtol 1e-5: one device adds the per-pass float32 images on the host in float64;
 several keep a Kahan-compensated float32 sum per device and `psum` the sums in float32, so
 a pixel's total carries a few float32 roundings (6e-8 each), never an error that grows with
 the pass count; a wrong key, pass index or a dropped or doubled pass changes a pixel by
 O(1/passes), 4 orders of magnitude more. A time-budgeted render on 4 devices records the
 passes it averaged (a multiple of 4) and equals the one-device render of that many passes;
-a render resumed from its output set equals the uninterrupted one (from the stored float32
-mean: the same tolerance); a resume with another seed is refused in one line. Two
-processes on loopback (`jax.distributed`, gloo) equal one process through the CLI.
+a render resumed on 4 devices from a 1-device output set equals the uninterrupted one (from
+the stored float32 mean: the same tolerance); a resume with another seed is refused in one
+line. Two processes on loopback (`jax.distributed`, gloo) equal one process through the
+CLI.
 """
 
 from __future__ import annotations
@@ -52,9 +54,9 @@ def rel(a, b):
 for alg in ("pt", "vcm"):
     cfg = jaxvcm.RenderConfig(algorithm=alg, max_depth=3)
     imgs = [jaxvcm.render(scene, alg, passes=5, config=cfg, progress=False, devices=n)
-            for n in (1, 2, 4)]
+            for n in (1, 4)]
     one4 = jaxvcm.render(scene, alg, passes=4, config=cfg, progress=False, devices=1)
-    out[alg] = {"d2": rel(imgs[0], imgs[1]), "d4": rel(imgs[0], imgs[2]),
+    out[alg] = {"d4": rel(imgs[0], imgs[1]),
                 "peak": float(np.abs(imgs[0]).max()), "p4_vs_p5": rel(imgs[0], one4)}
 cfg = jaxvcm.RenderConfig(algorithm="vcm", max_depth=3)
 # a time budget on 4 devices: the record's pass count is what was averaged
@@ -72,9 +74,9 @@ b = jaxvcm.render(scene, "vcm", passes=12, config=cfg, progress=False, devices=1
 out["snap"] = {"rel": rel(b, a), "exr": rel(b, jaxvcm.read_exr(sn)),
                "problems": jaxvcm.check_outputs(sn),
                "passes": json.load(open(os.path.join(d, "sn.json")))["passes"]}
-# resume: 3 passes on 2 devices, then up to 7 on 4 devices
+# resume: 3 passes on 1 device, then up to 7 on 4 devices
 r = os.path.join(d, "r.exr")
-jaxvcm.render(scene, "vcm", passes=3, config=cfg, progress=False, devices=2, out=r)
+jaxvcm.render(scene, "vcm", passes=3, config=cfg, progress=False, devices=1, out=r)
 c = jaxvcm.render(scene, "vcm", passes=7, config=cfg, progress=False, devices=4, out=r,
                   resume=True)
 e = jaxvcm.render(scene, "vcm", passes=7, config=cfg, progress=False, devices=1)
@@ -85,12 +87,12 @@ try:
     out["resume_seed"] = None
 except ValueError as ex:
     out["resume_seed"] = str(ex)
-for n in (1, 2):
+for n in (1, 4):
     rc = main(["render", sys.argv[1], "--algorithm", "pt", "--passes", "3", "--width", "8",
                "--height", "6", "--max-depth", "3", "--quiet", "--devices", str(n),
                "--out", os.path.join(d, f"d{n}.exr")])
     assert rc == 0
-a, b = (jaxvcm.read_exr(os.path.join(d, f"d{n}.exr")) for n in (1, 2))
+a, b = (jaxvcm.read_exr(os.path.join(d, f"d{n}.exr")) for n in (1, 4))
 out["cli"] = rel(a, b)
 # the fit's Jacobian (scenes x regions x keys) with its 8 passes spread over 4 devices
 from jaxvcm._fit._model import Region, region_colours_fn
@@ -102,7 +104,7 @@ jac = [np.asarray(jax.jit(jax.jacfwd(lambda t: region_colours_fn([small], regs, 
                                                                  devices=ds)(t)[0]))(theta))
        for ds in ([jax.local_devices()[0]], None)]
 out["fit_jac"] = {"rel": rel(jac[0], jac[1]), "peak": float(np.abs(jac[0]).max())}
-out["meta"] = json.load(open(os.path.join(d, "d2.json")))
+out["meta"] = json.load(open(os.path.join(d, "d4.json")))
 print("RESULT " + json.dumps(out))
 """
 
@@ -124,7 +126,7 @@ def test_one_two_four_devices_agree(tmp_path):
     for alg in ("pt", "vcm"):
         r = res[alg]
         assert r["peak"] > 0, (alg, r)
-        assert r["d2"] <= RTOL and r["d4"] <= RTOL, (alg, r)
+        assert r["d4"] <= RTOL, (alg, r)
         # the tolerance has teeth: dropping one of the 5 passes is far outside it
         assert r["p4_vs_p5"] > 1e3 * RTOL, (alg, r)
     t = res["time"]
@@ -138,7 +140,7 @@ def test_one_two_four_devices_agree(tmp_path):
     assert res["cli"] <= RTOL
     j = res["fit_jac"]
     assert j["peak"] > 0 and j["rel"] <= RTOL, j  # the passes' mean: a reduction over devices
-    assert res["meta"]["devices"] == 2 and res["meta"]["passes"] == 3
+    assert res["meta"]["devices"] == 4 and res["meta"]["passes"] == 3
 
 
 def _free_port() -> int:
@@ -163,8 +165,10 @@ def test_two_processes_equal_one(tmp_path):
     """Two processes on loopback (`--coordinator`, gloo collectives), one CPU device each:
     process 0 writes the set, process 1 writes nothing; 3 passes, then `--resume` up to 5
     (process 0 reads the set and broadcasts it), equal the one-process render of the same
-    5 passes (rtol 1e-5, as above)."""
-    args = ["-m", "jaxvcm", "render", str(SKY), "--algorithm", "vcm", "--width", "8",
+    5 passes (rtol 1e-5, as above). PT: what the processes share (keys, pass indices, the
+    sums, the set) does not depend on the algorithm; VCM on several devices is the test
+    above."""
+    args = ["-m", "jaxvcm", "render", str(SKY), "--algorithm", "pt", "--width", "8",
             "--height", "6", "--max-depth", "3", "--quiet"]
     two, one = str(tmp_path / "two.exr"), str(tmp_path / "one.exr")
     outs = _two_processes(args + ["--passes", "3"], two)
