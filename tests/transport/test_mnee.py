@@ -185,26 +185,32 @@ def test_gradients_through_the_root():
     # changes), the ramp sees the move
     wgt = jnp.asarray(np.linspace(-1.0, 1.0, N)[None, :, None] * np.ones((N, 1, 1)), jnp.float32)
 
-    def total(amp, sig, inten, w=wgt):
+    def total(amp, sig, inten, w):
         s = eqx.tree_at(lambda t: t.water.amp, scene, amp)
         s = eqx.tree_at(lambda t: t.water.sigma_a, s, sig)
         s = eqx.tree_at(lambda t: t.lights.radiance, s, inten)
         return (jaxvcm.render_pass(s, key, cfg)[0] * w).sum()
 
     p0 = (scene.water.amp, scene.water.sigma_a, scene.lights.radiance)
-    f = jax.jit(total)
-    g = jax.jit(jax.grad(total, argnums=(0, 1, 2)))(*p0)
-    v0 = float(f(*p0))
-    scale = float(f(*p0, jnp.ones_like(wgt)))  # the image's sum: the same program
+    # one program for the gradient and the differences: its value is the forward pass (the
+    # weights an argument: the ramp and the image's sum alike)
+    vg = jax.jit(jax.value_and_grad(total, argnums=(0, 1, 2)))
+
+    def f(*args):
+        return vg(*args)[0]
+
+    v0, g = vg(*p0, wgt)
+    v0 = float(v0)
+    scale = float(f(*p0, jnp.ones_like(wgt)))  # the image's sum
     assert scale > 0
     # the amplitude (h = 1 mm of 20 mm)
     h = 1e-3
-    fd = (float(f(p0[0] + h, *p0[1:])) - float(f(p0[0] - h, *p0[1:]))) / (2 * h)
+    fd = (float(f(p0[0] + h, *p0[1:], wgt)) - float(f(p0[0] - h, *p0[1:], wgt))) / (2 * h)
     assert abs(fd) * 0.02 > 0.02 * scale  # the amplitude matters
     np.testing.assert_allclose(float(g[0][0]), fd, rtol=0.03)
     # sigma_a of the green channel
     e = jnp.array([0.0, 0.02, 0.0], jnp.float32)
-    fd = (float(f(p0[0], p0[1] + e, p0[2])) - float(f(p0[0], p0[1] - e, p0[2]))) / 0.04
+    fd = (float(f(p0[0], p0[1] + e, p0[2], wgt)) - float(f(p0[0], p0[1] - e, p0[2], wgt))) / 0.04
     np.testing.assert_allclose(float(g[1][1]), fd, rtol=0.02)
     # linear in the intensity: sum_c I_c d total / d I_c = total
     np.testing.assert_allclose(float(jnp.sum(g[2] * p0[2])), v0, rtol=1e-4)
