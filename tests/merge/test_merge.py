@@ -399,7 +399,10 @@ def test_merging_bias_shrinks_with_radius():
     # progressive schedule r_i = r_1 i^((alpha - 1) / 2) with alpha = 0.5 is 8, 4, 2 cm at
     # i = 1, 16, 256, and every pass of a radius is rendered at that fixed pass index (the
     # index drives nothing but the radius; the keys stay independent)
-    cfg = RenderConfig(algorithm="ppm", max_depth=2, radius=0.08 / rb, alpha=0.5)
+    # (the 8 cm gathers hold up to ~1,000 candidates: room for them from the start, or the
+    # host's re-run with more room would compile a second program)
+    cfg = RenderConfig(algorithm="ppm", max_depth=2, radius=0.08 / rb, alpha=0.5
+                       ).tuned(merge_capacity=1024)
     for r, index in ((0.08, 0), (0.04, 15), (0.02, 255)):
         np.testing.assert_allclose(float(pass_radius(cfg, sc, index).surface), r, rtol=1e-5)
         imgs = []
