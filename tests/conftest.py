@@ -47,16 +47,21 @@ def _release_compiled_programs():
 
 # ---- scheduling under pytest-xdist (`-n 2 --dist loadfile`, as CI runs the suite)
 # xdist hands out whole files in the order of their test counts (largest first), so files
-# with few but long tests (test_gradients: 2 tests, ~3 minutes; test_devices: 8) would come
+# with few but long tests (test_gradients: 2 tests, over a minute; test_inline: 4) would come
 # last, one worker running them alone after the other has finished. Known long files go
 # first instead (longest first: the remaining short files then even out the two workers'
 # ends); the others keep xdist's order. Keys: files as pytest names them (from the
-# repository root); seconds: a CI run from a cold compilation cache, in xdist's own order.
-_LONG_FILES = {"tests/transport/test_bidir.py": 296, "tests/host/test_devices.py": 248,
-               "tests/merge/test_merge.py": 240, "tests/transport/test_spectral.py": 236,
-               "tests/mis/test_mis_recursive.py": 188, "tests/transport/test_gradients.py": 188,
-               "tests/fit/test_fit.py": 162, "tests/docs/test_tutorials.py": 250,
-               "tests/transport/test_glints.py": 90}
+# repository root); seconds: a whole run on the 2-core machine from a cold compilation cache
+# (`JAXVCM_TEST_COMPILE_LOG`, below, gives them per file).
+_LONG_FILES = {"tests/transport/test_bidir.py": 411, "tests/merge/test_merge.py": 254,
+               "tests/transport/test_spectral.py": 211, "tests/transport/test_mnee.py": 205,
+               "tests/sampling/test_aim.py": 181, "tests/host/test_memory.py": 167,
+               "tests/transport/test_glints.py": 151, "tests/mis/test_mis_recursive.py": 139,
+               "tests/docs/test_tutorials.py": 138, "tests/io/test_cli.py": 120,
+               "tests/fit/test_fit.py": 119, "tests/mis/test_glossy_mis.py": 118,
+               "tests/host/test_devices.py": 111, "tests/transport/test_delta_medium.py": 85,
+               "tests/transport/test_caustics.py": 78, "tests/transport/test_gradients.py": 73,
+               "tests/subpath/test_inline.py": 59}
 
 
 @pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: no error where it is absent
