@@ -104,6 +104,77 @@ def emitter_hit_join_pdfs(scene: Scene, z, zp, light, escaped) -> JoinPdfs:
     return JoinPdfs(A_s, jnp.where(escaped, pe * c_inf, a_area), one, one)
 
 
+# the families of the vertex-connection queue (`vertex_connection`)
+NEE, LT, CONN = 0, 1, 2
+
+
+def _sel(kind, nee=None, lt=None, conn=None):
+    """The value of an item's family. `kind` a Python int: the queue has that family alone,
+    and only its value is given (nothing of the others is traced); traced: the value of
+    the families given (pytrees of one structure), selected per item."""
+    vals = [(k, v) for k, v in ((NEE, nee), (LT, lt), (CONN, conn)) if v is not None]
+    if isinstance(kind, int):
+        return dict(vals)[kind]
+    out = vals[-1][1]
+    for k, v in reversed(vals[:-1]):
+        out = jax.tree.map(lambda a, b, k=k: jnp.where(kind == k, a, b), v, out)
+    return out
+
+
+def join_pdfs(scene: Scene, kind, z=None, zp=None, y=None, yp=None, ls=None, w=None, d=None,
+              wseg=None, yp_infinite=None, imp=None, families=(NEE, LT, CONN)):
+    """(A0, JoinPdfs) of a technique of the vertex-connection queue, the one implementation
+    of the three families' join pdfs (`nee_join_pdfs`, `light_tracing_join_pdfs`,
+    `connection_join_pdfs` are it with a static `kind`). `kind`: NEE, LT or CONN, a Python
+    int, or traced among `families` (their arguments given; each pdf is then evaluated
+    once with its arguments selected per item, the same arithmetic as the family alone).
+    A0: the light's pdf of y_0 (next-event estimation; 1 for the others)."""
+    water = scene.water
+    fams = (kind,) if isinstance(kind, int) else families
+
+    def has(k):
+        return k in fams
+
+    cam_side = has(NEE) or has(CONN)  # z_j, z_{j-1} are read
+    light_side = has(LT) or has(CONN)  # y_i, y_{i-1} are read
+    one = None
+    if has(NEE):
+        inf = ~jnp.isfinite(ls.dist)
+        dist = jnp.where(inf, 0.0, ls.dist)
+        A0 = lights.light_point_pdf(scene, ls.light, ls.wi)
+        pe = lights.emission_pdf_dir(scene, ls.light, ls.n, -ls.wi, z.p)  # the line through z_j
+        cos_z = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, ls.wi)))
+        g = jnp.where(inf, cos_z, cos_z / jnp.maximum(dist * dist, 1e-30))
+        As_nee = pe * g * subpath.dist_pdf(water, wseg, z.medium, ls.dist)  # A(z_j)
+        one = jnp.ones_like(As_nee)
+    if cam_side:  # z_j's direction towards the light end: the light sample, or y
+        wz = _sel(kind, nee=None if not has(NEE) else ls.wi, conn=w if has(CONN) else None)
+        # z_{j-1} from z_j, coming from the light end (its own arrival segment's water)
+        A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, wz, z.wo, zp.p, zp.medium, zp.n,
+                              z.seg_water)
+        pz = subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, wz, z.n)  # y from z_j
+    if light_side:  # y_{i-1} from y_i, coming from the camera end
+        b, p_inf = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium,
+                               yp.n, y.seg_water)
+        B_s2 = jnp.where(yp_infinite, p_inf, b)
+        to_y = subpath.to_area(1.0, y.medium, y.n, w, d, wseg, water)
+        one = jnp.ones_like(B_s2)
+    out = {}
+    if has(NEE):
+        cos_y = jnp.abs(vec.dot(ls.n, ls.wi))
+        B0 = jnp.where(inf, pz, pz * cos_y / jnp.maximum(dist * dist, 1e-30)
+                       * subpath.dist_pdf(water, wseg, False, ls.dist))
+        out[NEE] = (A0, JoinPdfs(As_nee, A_s1, B0, one))
+    if has(LT):
+        imp = camera_importance(scene, w)[1] if imp is None else imp
+        out[LT] = (one, JoinPdfs(one, one, imp * to_y, B_s2))
+    if has(CONN):
+        py = subpath.bsdf_pdf(scene, y.kind, y.mat, None, y.wo, -w, y.n)
+        out[CONN] = (one, JoinPdfs(py * subpath.to_area(1.0, z.medium, z.n, w, d, wseg, water),
+                                   A_s1, pz * to_y, B_s2))
+    return _sel(kind, nee=out.get(NEE), lt=out.get(LT), conn=out.get(CONN))
+
+
 def nee_join_pdfs(scene: Scene, z, zp, ls: lights.LightSample, wseg):
     """s = 1, next-event estimation from z = z_j (zp = z_{j-1}) to the light sample `ls`
     (`lights.sample_light` at z.p: y_0 = z.p + ls.wi ls.dist, normal ls.n); wseg: the
@@ -113,21 +184,7 @@ def nee_join_pdfs(scene: Scene, z, zp, ls: lights.LightSample, wseg):
     the light's direction -ls.wi towards z_{j-1} -> area at z_{j-1} (its own arrival
     segment's water); B_s1 = B(y_0): z_j samples ls.wi (its wo: z.wo) -> area at y_0 (a
     surface: P_pass in the water; sun / sky: the solid-angle pdf); B_s2 = 1 (no y_{-1})."""
-    water = scene.water
-    inf = ~jnp.isfinite(ls.dist)
-    dist = jnp.where(inf, 0.0, ls.dist)
-    A0 = lights.light_point_pdf(scene, ls.light, ls.wi)
-    pe = lights.emission_pdf_dir(scene, ls.light, ls.n, -ls.wi, z.p)  # the line through z_j
-    cos_z = jnp.where(z.medium, 1.0, jnp.abs(vec.dot(z.n, ls.wi)))
-    g = jnp.where(inf, cos_z, cos_z / jnp.maximum(dist * dist, 1e-30))
-    A_s = pe * g * subpath.dist_pdf(water, wseg, z.medium, ls.dist)  # A(z_j)
-    A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, ls.wi, z.wo, zp.p, zp.medium, zp.n,
-                          z.seg_water)  # z_{j-1} from z_j, coming from y
-    pb = subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, ls.wi, z.n)  # y from z_j
-    cos_y = jnp.abs(vec.dot(ls.n, ls.wi))
-    B0 = jnp.where(inf, pb, pb * cos_y / jnp.maximum(dist * dist, 1e-30)
-                   * subpath.dist_pdf(water, wseg, False, ls.dist))
-    return A0, JoinPdfs(A_s, A_s1, B0, jnp.ones_like(B0))
+    return join_pdfs(scene, NEE, z=z, zp=zp, ls=ls, wseg=wseg)
 
 
 def light_tracing_join_pdfs(scene: Scene, y, yp, w: Vec3, d, wseg, yp_infinite) -> JoinPdfs:
@@ -137,12 +194,7 @@ def light_tracing_join_pdfs(scene: Scene, y, yp, w: Vec3, d, wseg, yp_infinite) 
     pdf). B_s1 = B(y_i): the pinhole samples w (`camera_importance`'s pdf, 0 off the film)
     -> area at y_i; B_s2 = B(y_{i-1}): y_i scatters the camera's direction -w towards
     y_{i-1} -> area at y_{i-1}. The pinhole has no light-side pdf: A_s = A_s1 = 1."""
-    imp = camera_importance(scene, w)[1]
-    B_s1 = imp * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, scene.water)
-    b2, pr = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
-                         y.seg_water)
-    one = jnp.ones_like(B_s1)
-    return JoinPdfs(one, one, B_s1, jnp.where(yp_infinite, pr, b2))
+    return join_pdfs(scene, LT, y=y, yp=yp, w=w, d=d, wseg=wseg, yp_infinite=yp_infinite)[1]
 
 
 def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
@@ -155,16 +207,8 @@ def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
     light's direction w towards z_{t-2}; B_s2 = B(y_{s-2}): y scatters the camera's
     direction -w towards y_{s-2}; each -> area at its vertex, with the water of that
     vertex's own segment."""
-    water = scene.water
-    A_s = (subpath.bsdf_pdf(scene, y.kind, y.mat, None, y.wo, -w, y.n)
-           * subpath.to_area(1.0, z.medium, z.n, w, d, wseg, water))
-    B_s1 = (subpath.bsdf_pdf(scene, z.kind, z.mat, None, z.wo, w, z.n)
-            * subpath.to_area(1.0, y.medium, y.n, w, d, wseg, water))
-    A_s1, _ = reverse_pdf(scene, z.kind, z.mat, z.n, z.p, w, z.wo, zp.p, zp.medium, zp.n,
-                          z.seg_water)
-    b, p4 = reverse_pdf(scene, y.kind, y.mat, y.n, y.p, -w, y.wo, yp.p, yp.medium, yp.n,
-                        y.seg_water)
-    return JoinPdfs(A_s, A_s1, B_s1, jnp.where(yp_infinite, p4, b))
+    return join_pdfs(scene, CONN, z=z, zp=zp, y=y, yp=yp, w=w, d=d, wseg=wseg,
+                     yp_infinite=yp_infinite)[1]
 
 
 # ---------------------------------------------------------------- the techniques
@@ -180,44 +224,67 @@ def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.
 
 
 def next_event(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, etas, parts):
-    """s = 1: next-event estimation from z_j, j = 1..D-1: {(1, j + 1): [N, C]}."""
-    js = np.arange(1, cfg.max_depth)
-    val = _next_event_queued(scene, cfg, cam, u_nee, parts, js, etas)
-    return {(1, int(j) + 1): val[i] for i, j in enumerate(js)}
+    """s = 1: next-event estimation from z_j, j = 1..D-1: {(1, j + 1): [N, C]} (the
+    vertex-connection queue with this family alone)."""
+    return vertex_connection(scene, cfg, None, cam, None, u_nee, None, etas, parts, (NEE,))
 
 
 def light_tracing(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission,
                   cam_o: Vec3, etas, parts):
-    """t = 1: y_i -> pinhole, i = 0..D-1, splatted: {(i + 1, 1): (pixel [N], value [N, C])}."""
-    idx = np.arange(0, cfg.max_depth)
-    pix, val = _light_tracing_queued(scene, cfg, lig, e, cam_o, parts, idx, etas)
-    return {(int(i) + 1, 1): (pix[j], val[j]) for j, i in enumerate(idx)}
+    """t = 1: y_i -> pinhole, i = 0..D-1, splatted: {(i + 1, 1): (pixel [N], value [N, C])}
+    (the vertex-connection queue with this family alone)."""
+    return vertex_connection(scene, cfg, lig, None, e, None, cam_o, etas, parts, (LT,))
 
 
 def connections(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds,
                 e: lights.Emission, parts, summed: bool):
-    """s, t >= 2: z_{t-1} joined to y_{s-1}, s + t - 1 <= D: {(s, t): [N, C]}; `summed`:
-    the family's sum per path [N, C] and its count of non-finite values instead
-    (`_queue.masked_map`'s summed mode: no [J, N, C] buffer, J ~ D^2 / 2)."""
+    """s, t >= 2: z_{t-1} joined to y_{s-1}, s + t - 1 <= D: {(s, t): [N, C]} (the
+    vertex-connection queue with this family alone); `summed`: the family's sum per path
+    [N, C] and its count of non-finite values instead."""
+    out = vertex_connection(scene, cfg, lig, cam, e, None, None, (0.0, 0.0), parts, (CONN,),
+                            summed=summed)
+    if summed:
+        return {} if out is None else (out[0], out[2])
+    return out
+
+
+def families(cfg: RenderConfig) -> tuple[int, ...]:
+    """The families of the vertex-connection queue that `cfg`'s algorithm runs: next-event
+    estimation (s = 1, max_depth >= 2), light tracing (t = 1) and the connections
+    (s, t >= 2, max_depth >= 3)."""
+    tech = cfg.techniques
     D = cfg.max_depth
-    pairs = [(s, t) for s in range(2, D + 1) for t in range(2, D + 2 - s)]
-    if not pairs:
-        return {}
-    ss = np.array([p[0] for p in pairs])
-    ts = np.array([p[1] for p in pairs])
-    val = _connections_queued(scene, cfg, lig, cam, e, parts, ss, ts, summed)
-    return val if summed else {pr: val[i] for i, pr in enumerate(pairs)}
+    out = []
+    if tech.camera_paths and tech.nee and D >= 2:
+        out.append(NEE)
+    if tech.light_paths and tech.light_tracing:
+        out.append(LT)
+    if tech.light_paths and tech.connections and D >= 3:
+        out.append(CONN)
+    return tuple(out)
 
 
-def _visible_one(scene: Scene, cfg: RenderConfig, pa: Vec3, na: Vec3, ma, pb: Vec3, nb: Vec3,
-                 mb):
-    """`_visible` for one item (its shadow ray traced here, not queued): visibility, the
-    unit direction a -> b, the distance, whether the segment runs through the water."""
-    w, d, oa, wd, tmax = _segment(pa, na, ma, pb, nb, mb)
-    vis = geometry.unoccluded(scene, oa, wd, tmax, cfg.march_steps)
-    wseg = (geometry.inside_water(scene.water, oa) if scene.water.enabled
-            else jnp.zeros((), bool))
-    return vis & (d > 1e-7), w, d, wseg
+def queue_rows(cfg: RenderConfig) -> int:
+    """Techniques (rows of N items) of `cfg`'s vertex-connection queue."""
+    return len(_rows(cfg, families(cfg))["kind"])
+
+
+def _rows(cfg: RenderConfig, fams) -> dict:
+    """The queue's rows (one technique each, every lane an item) as static arrays: family,
+    s, t, the camera vertex z_j (jz), the light vertex y_i (iy), the row of the light
+    samples' uniforms (next-event estimation), and the technique labels in row order."""
+    D = cfg.max_depth
+    rows = []
+    if NEE in fams:  # (1, j + 1) from z_j
+        rows += [(NEE, 1, j + 1, j, 0, j - 1) for j in range(1, D)]
+    if LT in fams:  # (i + 1, 1) from y_i
+        rows += [(LT, i + 1, 1, 0, i, 0) for i in range(D)]
+    if CONN in fams:  # (s, t): z_{t-1} joined to y_{s-1}
+        rows += [(CONN, s, t, t - 1, s - 1, 0) for s in range(2, D + 1)
+                 for t in range(2, D + 2 - s)]
+    a = np.array(rows, np.int32).reshape(-1, 6)
+    return dict(kind=a[:, 0], s=a[:, 1], t=a[:, 2], jz=a[:, 3], iy=a[:, 4], u=a[:, 5],
+                labels=[(int(r[1]), int(r[2])) for r in a])
 
 
 def _tr_one(scene: Scene, wseg, d):
@@ -225,53 +292,6 @@ def _tr_one(scene: Scene, wseg, d):
     if not scene.water.enabled:
         return jnp.ones((1,), d.dtype)
     return jnp.where(wseg, media.transmittance(scene.water, d), 1.0)
-
-
-def _connections_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, cam: PathEnds,
-                        e: lights.Emission, parts, ss, ts, summed=False):
-    """The (s, t >= 2) connections [J, N, C] as one work queue over (technique, lane)
-    items: only the pairs of live, non-delta vertices run the kernel (the shadow ray, both
-    scattering factors, the four join pdfs and the join weight), each gathering its four
-    vertices and its entries of the MIS state. In a pool few light vertices survive their
-    first bounce, so few of the J x N pairs are live."""
-    N = cam.A.shape[1]
-    J = len(ss)
-    dt = cam.A.dtype
-    C = scene.channels
-    log_n = log_n_light_tracing(cfg, N, dt)
-    ok = (rows(lig, ss - 1).alive & ~rows(lig, ss - 1).delta
-          & rows(cam, ts - 1).alive & ~rows(cam, ts - 1).delta)
-    s_of = jnp.asarray(ss, jnp.int32)
-    t_of = jnp.asarray(ts, jnp.int32)
-
-    lig_at, cam_at = vertex_table(lig), vertex_table(cam)
-
-    def item(j, n):
-        s, t = s_of[j], t_of[j]
-        y, yp, z, zp = lig_at(s - 1, n), lig_at(s - 2, n), cam_at(t - 1, n), cam_at(t - 2, n)
-        # ---- visibility z -> y (both ends offset on their own sides) ----
-        vis, w, d, wseg = _visible_one(scene, cfg, z.p, z.n, z.medium, y.p, y.n, y.medium)
-        # ---- contribution ----
-        fy = subpath.eval_f(scene, y.kind, y.mat, y.wo, -w, y.n)
-        fz = subpath.eval_f(scene, z.kind, z.mat, z.wo, w, z.n)
-        Tr = _tr_one(scene, wseg, d)
-        contrib = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)
-        contrib = contrib * both_dispersed(C, y.disp, z.disp).astype(dt)
-        # ---- the four pdfs the join changes ----
-        A_s, A_s1, B_s1, B_s2 = connection_join_pdfs(scene, y, yp, z, zp, w, d, wseg,
-                                                     (s == 2) & e.infinite[n])
-        sg = jax.lax.stop_gradient
-        wgt = sg(mis_form(cfg).join_weight(cfg, s, t, parts[0], parts[1], sg(A_s), sg(A_s1),
-                                           sg(B_s1), sg(B_s2), e.delta[n], e.infinite[n],
-                                           sg(log_n), lanes=((n,), (n,))))
-        return jnp.where(vis, contrib * wgt, 0.0)
-
-    jj = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
-    nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
-    # every live pair is queued, those whose segment crosses the water surface included
-    # (a first queue to drop them costs more than it saves); rounds of N items: a few live
-    # pairs per path at most in the shipped scenes
-    return masked_map(item, ok, (jj, nn), 0.0, J, summed=summed)
 
 
 def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
@@ -323,139 +343,231 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
     return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
 
 
-def _next_event_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds, u_nee, parts, js,
-                       etas):
-    """Next-event estimation [J, N, C] from z_j (j = js) as one work queue over (vertex,
-    lane) items: only live, non-delta camera vertices sample a light, trace the shadow ray
-    and evaluate the join."""
-    N = cam.A.shape[1]
-    J = len(js)
-    dt = cam.A.dtype
+def _entries(cfg: RenderConfig, kind, nee=None, lt=None, conn=None):
+    """`_sel` of the families' MIS entries, a field that one of them lacks (the manifold
+    factors of a light side with manifold next-event estimation) neutral in the others
+    (log factor 0, no manifold connection)."""
+    vals = [v for v in (nee, lt, conn) if v is not None]
+    if len(vals) > 1 and hasattr(vals[0], "_fields"):
+        def full(e):
+            fill = {}
+            for f in e._fields:
+                if getattr(e, f) is None:
+                    ref = next((getattr(o, f) for o in vals if getattr(o, f) is not None), None)
+                    if ref is not None:
+                        fill[f] = jnp.zeros_like(ref)
+            return e._replace(**fill)
+        nee, lt, conn = (None if v is None else full(v) for v in (nee, lt, conn))
+    return _sel(kind, nee=nee, lt=lt, conn=conn)
+
+
+def vertex_connection(scene: Scene, cfg: RenderConfig, lig: PathEnds | None,
+                      cam: PathEnds | None, e: lights.Emission | None, u_nee,
+                      cam_o: Vec3 | None, etas, parts, fams, summed=False):
+    """Vertex connection: next-event estimation (s = 1: a fresh light sample y_0 per camera
+    vertex z_j, j = 1..D-1), light tracing (t = 1: light vertex y_i, i = 0..D-1, through
+    the pinhole, splatted) and the connections (s, t >= 2: z_{t-1} joined to y_{s-1} of the
+    light subpath with the same index), whichever of the families `fams` are given, as
+    one work queue over (technique, lane) items (`_queue.masked_map`): one kernel for
+    every item, with one copy of what the three have in common (the shadow ray, the
+    scattering factors at both ends, the join pdfs (`join_pdfs`) and the MIS join),
+    each family's own part (the light sample, the pinhole) selected per item.
+
+    First the cheap part, where it drops items: a light sample whose shadow ray, or a
+    light vertex whose segment to the pinhole, has its ends on opposite sides of the water
+    surface (a delta interface: blocked; `crosses_water`, two height evaluations) or a
+    light vertex outside the camera's frustum contributes nothing; in a pool that leaves
+    few of the live items. The connections' pairs are all queued (a first pass over them
+    costs more than it saves: few light vertices survive their first bounce).
+
+    Returns {(s, t): value}: [N, C] per camera path, (pixel [N], value [N, C]) for a
+    light-tracing technique. `summed` (the pass wants only its image): the items added
+    into one [N, C] array per camera path and one [P, C] array per pixel (light tracing's
+    splats) instead, with the count of non-finite values zeroed in them: (camera [N, C],
+    pixels [P, C], count); None without items."""
+    if not fams:
+        return None
+    R = _rows(cfg, fams)
+    if len(R["kind"]) == 0:
+        return None
+    ends = cam if cam is not None else lig
+    N = ends.A.shape[1]
+    J = len(R["kind"])
+    dt = ends.A.dtype
+    C = scene.channels
+    P = scene.camera.height * scene.camera.width
     water = scene.water
+    cam_side = NEE in fams or CONN in fams
+    light_side = LT in fams or CONN in fams
     log_n = log_n_light_tracing(cfg, N, dt)
-    is_delta = jnp.asarray([k in DELTA_LIGHTS for k in scene.lights.kind])
-    zs = rows(cam, js)
-    j_of = jnp.asarray(js, jnp.int32)
+    mj = mis_form(cfg)
     sg = jax.lax.stop_gradient
+    is_delta = jnp.asarray([k in DELTA_LIGHTS for k in scene.lights.kind])
+    kind_of, s_of, t_of = (jnp.asarray(R[k]) for k in ("kind", "s", "t"))
+    jz_of, iy_of, u_of = (jnp.asarray(R[k]) for k in ("jz", "iy", "u"))
+    static_kind = fams[0] if len(fams) == 1 else None
+    cam_at = vertex_table(cam) if cam_side else None
+    lig_at = vertex_table(lig) if light_side else None
+    if NEE in fams and isinstance(u_nee, Uniforms) and not u_nee.lazy:
+        u_nee = u_nee.dense()  # (no per-item hash: the table)
+    Cp = mj.pinhole(cfg, log_n, dt, etas) if LT in fams else None  # z_0 alone
 
-    cam_at = vertex_table(cam)
-    if isinstance(u_nee, Uniforms) and not u_nee.lazy:  # (no per-item hash: the table)
-        u_nee = u_nee.dense()
-
-    def shadow_ray(i, n, z):  # the light sample of item (i, n) at z and its shadow ray
-        p, nz, med = z.p, z.n, z.medium
+    def light_sample(r, n, z):  # next-event estimation: the light sample at z, its shadow ray
         # the light sample's uniforms hashed for this item alone (`_uniforms`), not the
         # dense table of every (depth, lane) slot, dead or alive
+        i = u_of[r]
         u = u_nee.at(i, n) if isinstance(u_nee, Uniforms) else u_nee[i, n]
-        ls = lights.sample_light(scene, p, u[0], u[1], u[2])
+        ls = lights.sample_light(scene, z.p, u[0], u[1], u[2])
         inf = ~jnp.isfinite(ls.dist)
         dist = jnp.where(inf, 0.0, ls.dist)
-        y = p + ls.wi * dist
-        oz = subpath.spawn(p, nz, med, ls.wi)
+        y = z.p + ls.wi * dist
+        oz = subpath.spawn(z.p, z.n, z.medium, ls.wi)
         tmax = jnp.where(inf, jnp.inf, vec.length(y - oz) * (1.0 - 1e-4))
-        return ls, inf, dist, oz, tmax
+        return ls, inf, oz, tmax
 
-    # (every vertex is read from the trace's packed table, `vertex_table`: per-field
-    # columns [D+1, N] would each be a strided copy of the whole table)
-    def worth(i, n):  # False: the item contributes 0 whatever the rest computes
-        ls, _, _, oz, tmax = shadow_ray(i, n, cam_at(j_of[i], n))
-        return ls.valid & ~geometry.crosses_water(water, oz, ls.wi, 0.0, tmax, cfg.march_steps)
+    def segment(kind, n, z, y):  # light tracing, connections: the segment to y and its ray
+        co = None if LT not in fams else Vec3(*(c[n] for c in cam_o))
+        one = jnp.ones((), bool)
+        pa = _sel(kind, lt=co, conn=None if z is None else z.p)
+        na = _sel(kind, lt=y.n, conn=None if z is None else z.n)
+        ma = _sel(kind, lt=one, conn=None if z is None else z.medium)
+        return _segment(pa, na, ma, y.p, y.n, y.medium)
 
-    def item(i, n):
-        j = j_of[i]
-        z, zp = cam_at(j, n), cam_at(j - 1, n)
-        ls, inf, _, oz, tmax = shadow_ray(i, n, z)
-        is_delta_l = is_delta[ls.light]
-        f = subpath.eval_f(scene, z.kind, z.mat, z.wo, ls.wi, z.n)
-        vis = geometry.unoccluded(scene, oz, ls.wi, tmax, cfg.march_steps)
-        wseg = geometry.inside_water(water, oz) if water.enabled else jnp.zeros((), bool)
-        Tr = _tr_one(scene, wseg, jnp.where(inf, jnp.inf, ls.dist))
-        contrib = z.beta * f * ls.Le * Tr / ls.pdf_w
-        # ---- pdfs at the join ----
-        A0, (A_s, A_s1, B0, B_s2) = nee_join_pdfs(scene, z, zp, ls, wseg)
-        # the fresh light sample as a one-vertex light subpath: its entries in closed form
-        # (`start_entries`), not built per item from a one-vertex subpath
-        s1 = jnp.asarray(1, jnp.int32)
-        mj = mis_form(cfg)
-        Le_ = mj.start_entries(cfg, sg(A0), is_delta_l, sg(etas[0]))
-        Ce_ = mj.entries(cfg, parts[1], j + 1, s1, (n,))
-        w = sg(mj.join(cfg, s1, j + 1, Le_, Ce_, sg(A_s), sg(A_s1), sg(B0), sg(B_s2),
-                       is_delta_l, inf, sg(log_n)))
-        return jnp.where(ls.valid & vis, contrib * w, 0.0)
+    def kind_at(r):
+        return static_kind if static_kind is not None else kind_of[r]
 
-    ii = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
+    def ends_at(r, n):
+        z = zp = y = yp = None
+        if cam_side:
+            z, zp = cam_at(jz_of[r], n), cam_at(jz_of[r] - 1, n)
+        if light_side:
+            y, yp = lig_at(iy_of[r], n), lig_at(jnp.maximum(iy_of[r] - 1, 0), n)
+        return z, zp, y, yp
+
+    # ---- the cheap part: items that cannot contribute, dropped before the queue
+    def worth(r, n):  # False: the item contributes 0 whatever the rest computes
+        kind = kind_at(r) if len(wfams) > 1 else wfams[0]
+        z, _, y, _ = ends_at(r, n)
+        nee = lt = None
+        if NEE in wfams:
+            ls, _, oz, tmax_n = light_sample(r, n, z)
+            nee = (oz, ls.wi, tmax_n)
+        if LT in wfams:
+            w, _, oa, wd, tmax_s = segment(LT, n, None, y)
+            lt = (oa, wd, tmax_s)
+        o, dv, tmax = _sel(kind, nee=nee, lt=lt)
+        cross = (geometry.crosses_water(water, o, dv, 0.0, tmax, cfg.march_steps)
+                 if water.enabled else jnp.zeros((), bool))
+        return _sel(kind, nee=None if nee is None else ls.valid & ~cross,
+                    lt=None if lt is None else camera_importance(scene, w)[2] & ~cross)
+
+    # ---- one item: the shadow ray, both ends' factors, the join pdfs, the MIS join
+    def item(r, n):
+        kind = kind_at(r)
+        s, t = s_of[r], t_of[r]
+        z, zp, y, yp = ends_at(r, n)
+        if NEE in fams:
+            ls, inf, oz, tmax_n = light_sample(r, n, z)
+            is_delta_l = is_delta[ls.light]
+        if light_side:
+            w, d, oa, wd, tmax_s = segment(kind, n, z, y)
+        nee = None if NEE not in fams else (oz, ls.wi, tmax_n)
+        seg = None if not light_side else (oa, wd, tmax_s)
+        o, dv, tmax = _sel(kind, nee=nee, lt=seg if LT in fams else None,
+                           conn=seg if CONN in fams else None)
+        vis = geometry.unoccluded(scene, o, dv, tmax, cfg.march_steps)
+        wseg = geometry.inside_water(water, o) if water.enabled else jnp.zeros((), bool)
+        d_nee = None if NEE not in fams else jnp.where(inf, jnp.inf, ls.dist)
+        Tr = _tr_one(scene, wseg, _sel(kind, nee=d_nee, lt=d if LT in fams else None,
+                                       conn=d if CONN in fams else None))
+        # ---- the scattering factors: at z towards the light end, at y towards the camera end
+        if cam_side:
+            wz = _sel(kind, nee=None if NEE not in fams else ls.wi,
+                      conn=w if CONN in fams else None)
+            fz = subpath.eval_f(scene, z.kind, z.mat, z.wo, wz, z.n)
+        if light_side:
+            fy = subpath.eval_f(scene, y.kind, y.mat, y.wo, -w, y.n)
+        imp = pix = inside = None
+        if LT in fams:
+            pix, imp, inside = camera_importance(scene, w)
+        # ---- the four pdfs the join changes ----
+        yp_inf = None if not light_side else (iy_of[r] == 1) & e.infinite[n]
+        A0, (A_s, A_s1, B_s1, B_s2) = join_pdfs(
+            scene, kind, z=z, zp=zp, y=y, yp=yp, ls=None if NEE not in fams else ls,
+            w=w if light_side else None, d=d if light_side else None, wseg=wseg,
+            yp_infinite=yp_inf, imp=imp, families=fams)
+        # ---- the MIS join: the fresh light sample's entries in closed form
+        # (`start_entries`), the pinhole's (light tracing), or the subpaths' partials
+        Le_ = _entries(cfg, kind,
+                       nee=None if NEE not in fams else mj.start_entries(
+                           cfg, sg(A0), is_delta_l, sg(etas[0])),
+                       lt=None if LT not in fams else mj.entries(cfg, parts[0], s, t, (n,)),
+                       conn=None if CONN not in fams else mj.entries(cfg, parts[0], s, t, (n,)))
+        Ce_ = _entries(cfg, kind,
+                       nee=None if NEE not in fams else mj.entries(cfg, parts[1], t, s, (n,)),
+                       lt=None if LT not in fams else mj.entries(cfg, Cp, t, s, (0,)),
+                       conn=None if CONN not in fams else mj.entries(cfg, parts[1], t, s, (n,)))
+        if light_side:
+            ed, ei = e.delta[n], e.infinite[n]
+        dl = _sel(kind, nee=None if NEE not in fams else is_delta_l,
+                  lt=ed if LT in fams else None, conn=ed if CONN in fams else None)
+        il = _sel(kind, nee=None if NEE not in fams else inf,
+                  lt=ei if LT in fams else None, conn=ei if CONN in fams else None)
+        wgt = sg(mj.join(cfg, s, t, Le_, Ce_, sg(A_s), sg(A_s1), sg(B_s1), sg(B_s2), dl, il,
+                         sg(log_n)))
+        # ---- each family's contribution (its own arithmetic) ----
+        val = {}
+        if NEE in fams:  # (the pdf of another family's item's stand-in sample: 1, so that
+            # nothing infinite enters the gradient through the branch not taken)
+            pdf_w = ls.pdf_w if static_kind is not None else jnp.where(kind == NEE, ls.pdf_w, 1.0)
+            c = z.beta * fz * ls.Le * Tr / pdf_w
+            val[NEE] = jnp.where(ls.valid & vis, c * wgt, 0.0)
+        if LT in fams:  # y_0: what it emits towards the camera (Le |cos|; a point light's
+            # I); y_i>0: the scattering factor
+            f0 = lights.emitted_toward(scene, e.light[n], -w, y.n)
+            c = (y.beta * jnp.where(iy_of[r] == 0, f0, fy) * Tr
+                 * (imp / jnp.maximum(d * d, 1e-30)) / (N * cfg.tuning.chunks))
+            val[LT] = jnp.where(vis & (d > 1e-7) & inside, c * wgt, 0.0)
+        if CONN in fams:
+            c = y.beta * fy * fz * z.beta * Tr / jnp.maximum(d * d, 1e-30)
+            c = c * both_dispersed(C, y.disp, z.disp).astype(dt)
+            val[CONN] = jnp.where(vis & (d > 1e-7), c * wgt, 0.0)
+        v = _sel(kind, nee=val.get(NEE), lt=val.get(LT), conn=val.get(CONN))
+        if summed:  # its row: the camera path's, or (light tracing) N + its pixel
+            if LT not in fams:  # (every item in its path's row)
+                return v
+            splat = N + jnp.clip(pix, 0, P - 1)
+            return (splat if static_kind is not None else jnp.where(kind == LT, splat, n)), v
+        return (jnp.zeros((), jnp.int32) if pix is None else pix), v
+
+    # ---- which items run
+    if cam_side:
+        zs = rows(cam, R["jz"])
+        cam_ok = zs.alive & ~zs.delta
+    if light_side:
+        ys = rows(lig, R["iy"])
+        light_ok = ys.alive & ~ys.delta
+    kinds = R["kind"][:, None]
+    ok = jnp.zeros((J, N), bool)
+    if NEE in fams:
+        ok = ok | ((kinds == NEE) & cam_ok)
+    if LT in fams:  # y_0 of a finite light, and the live non-delta light vertices
+        first = (R["iy"] == 0)[:, None]
+        ok = ok | ((kinds == LT) & jnp.where(first, ~e.infinite[None], light_ok))
+    if CONN in fams:
+        ok = ok | ((kinds == CONN) & light_ok & cam_ok)
+    rr = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
-    want = zs.alive & ~zs.delta
-    if water.enabled:
-        # first the light samples alone: a shadow ray whose ends lie on opposite sides of
-        # the water surface is blocked (a delta interface), known from two height
-        # evaluations (`crosses_water`: the march's own answer); such items (most live
-        # ones in a pool) skip the shadow ray and the join
-        want = want & masked_map(worth, want, (ii, nn), False, 2 * J)
-    # rounds of N / 2 items (a few live NEE vertices per path in the shipped scenes)
-    return masked_map(item, want, (ii, nn), 0.0, 2 * J)
-
-
-def _light_tracing_queued(scene: Scene, cfg: RenderConfig, lig: PathEnds, e: lights.Emission,
-                          cam_o: Vec3, parts, idx, etas):
-    """Light tracing (pixel [J, N], value [J, N, C]) from y_i (i = idx) as one work queue
-    over (vertex, lane) items: only y_0 of a finite light and the live, non-delta light
-    vertices project onto the film."""
-    N = lig.A.shape[1]
-    J = len(idx)
-    dt = lig.A.dtype
-    water = scene.water
-    log_n = log_n_light_tracing(cfg, N, dt)
-    Cp = mis_form(cfg).pinhole(cfg, log_n, dt, etas)  # z_0 alone
-    i_of = jnp.asarray(idx, jnp.int32)
-    sg = jax.lax.stop_gradient
-
-    lig_at = vertex_table(lig)
-
-    def item(k, n):
-        i = i_of[k]
-        y, yp = lig_at(i, n), lig_at(jnp.maximum(i - 1, 0), n)
-        co = Vec3(*(c[n] for c in cam_o))
-        first = i == 0
-        # ---- visibility camera -> y (the pinhole as a medium-like point: no offset) ----
-        vis, w, d, wseg = _visible_one(scene, cfg, co, y.n, jnp.ones((), bool), y.p, y.n,
-                                       y.medium)
-        pix, imp, inside = camera_importance(scene, w)
-        Tr = _tr_one(scene, wseg, d)
-        to_cam = -w
-        # y_0: what it emits towards the camera (Le |cos|; a point light's I); y_i>0: the
-        # scattering factor
-        f0 = lights.emitted_toward(scene, e.light[n], to_cam, y.n)
-        fi = subpath.eval_f(scene, y.kind, y.mat, y.wo, to_cam, y.n)
-        fterm = jnp.where(first, f0, fi)
-        contrib = y.beta * fterm * Tr * (imp / jnp.maximum(d * d, 1e-30)) / (N * cfg.tuning.chunks)
-        # ---- pdfs at the join: B(y_i) by the camera, B(y_{i-1}) through y_i ----
-        A_s, A_s1, B_s1, B_s2 = light_tracing_join_pdfs(scene, y, yp, w, d, wseg,
-                                                        (i == 1) & e.infinite[n])
-        wgt = sg(mis_form(cfg).join_weight(cfg, i + 1, jnp.asarray(1, jnp.int32), parts[0], Cp,
-                                           A_s, A_s1, sg(B_s1), sg(B_s2), e.delta[n],
-                                           e.infinite[n], sg(log_n), lanes=((n,), (0,))))
-        return pix, jnp.where(vis & inside, contrib * wgt, 0.0)
-
-    def worth(k, n):  # False: the item contributes 0 whatever the rest computes
-        i = i_of[k]
-        y = lig_at(i, n)  # (from the packed table, as in next-event estimation)
-        p, ny, med = y.p, y.n, y.medium
-        co = Vec3(*(c[n] for c in cam_o))
-        w, _, oa, wd, tmax = _segment(co, ny, jnp.ones((), bool), p, ny, med)
-        inside = camera_importance(scene, w)[2]
-        if water.enabled:
-            inside = inside & ~geometry.crosses_water(water, oa, wd, 0.0, tmax,
-                                                      cfg.march_steps)
-        return inside
-
-    ys = rows(lig, idx)
-    first = (idx == 0)[:, None]
-    ok = jnp.where(first, ~e.infinite[None], ys.alive & ~ys.delta)
-    kk = jnp.broadcast_to(jnp.arange(J, dtype=jnp.int32)[:, None], (J, N))
-    nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (J, N))
-    # first the cheap part: a light vertex outside the camera's frustum, or seen through
-    # the water surface (`crosses_water`, a delta interface), contributes nothing; in a
-    # pool that leaves few of the live light vertices for the shadow ray and the join
-    ok = ok & masked_map(worth, ok, (kk, nn), False, J)
-    return masked_map(item, ok, (kk, nn), (0, 0.0), J)
+    wfams = tuple(f for f in fams if f == LT or (f == NEE and water.enabled))
+    if wfams:
+        wrows = np.isin(R["kind"], wfams)[:, None]
+        keep = masked_map(worth, ok & wrows, (rr, nn), False, J)  # rounds of N items
+        ok = ok & (~wrows | keep)
+    # rounds of N items (a few live items per path in the shipped scenes)
+    if summed:
+        out, bad = masked_map(item, ok, (rr, nn), 0.0, J, summed=True,
+                              summed_rows=N + P if LT in fams else None)
+        return out[:N], (out[N:] if LT in fams else None), bad
+    pix, val = masked_map(item, ok, (rr, nn), (0, 0.0), J)
+    return {lab: ((pix[r], val[r]) if R["kind"][r] == LT else val[r])
+            for r, lab in enumerate(R["labels"])}

@@ -7,10 +7,10 @@ the techniques that algorithm has.
 The pass is a straight line of named stages `stage(scene, cfg, state) -> state` over a
 `PassState` (`pass_stages(cfg)` lists the ones the algorithm runs):
     setup (keys, merging radius) -> camera rays -> light emission -> subpaths (one trace of
-    both when both run) -> mis partials -> [s = 0] emitter hits -> [s = 1] next-event
-    estimation -> [t = 1] light tracing splats -> [s, t >= 2] connections -> [merging] hash
-    grid over light vertices, gather at camera vertices (ppm / bpm / vcm) -> film: every
-    technique's image
+    both when both run) -> mis partials -> [s = 0] emitter hits -> vertex connection ([s =
+    1] next-event estimation, [t = 1] light tracing splats, [s, t >= 2] connections: one
+    work queue) -> [merging] hash grid over light vertices, gather at camera vertices
+    (ppm / bpm / vcm) -> film: every technique's image
 `technique_images` composes them inside the caller's jit; `profile_stages` jits and times
 each on its own. A PT pass that wants only its image (`integrate`, explicit MIS form)
 runs setup -> camera rays -> one trace that evaluates the emitter hits and next-event
@@ -58,13 +58,14 @@ class Technique(NamedTuple):
          (s = 0: any number of light vertices), or with `technique_images(merge_lengths=True)`
          of photon y_{s-1} only (s >= 2: a path of s + t - 2 segments);
     kind "gather": ppm's photon gather (s = t = 0);
-    kind "sum": in a pass that wants only its image (`integrate`), the connections
-         (s, t >= 2) summed per path (s = 2, t = 0): their queue adds each item into its
-         path's row, so none of the D^2 / 2 techniques writes an [N, C] buffer of its own
-         (emitter hits and next-event estimation, D techniques each, keep one value per
-         technique); and PT's emitter hits and next-event estimation summed per path
-         inside the camera trace (s = 0, t = 0; docs/design/pass.md, "PT's inline
-         route").
+    kind "sum": in a pass that wants only its image (`integrate`), vertex connection's
+         techniques summed: next-event estimation and the connections (s, t >= 2) per
+         camera path (s = 1, t = 0), light tracing's splats per pixel (s = 0, t = 1,
+         a splat onto every pixel): its queue adds each item into its row, so none of its
+         D^2 / 2 techniques writes an [N, C] buffer of its own (the emitter hits, D
+         techniques, keep one value per technique); and PT's emitter hits and next-event
+         estimation summed per path inside the camera trace (s = 0, t = 0;
+         docs/design/pass.md, "PT's inline route").
     """
 
     kind: str
@@ -172,13 +173,12 @@ MAX_PASS_PATHS = (1 << 31) - 1
 
 def index_factor(cfg: RenderConfig) -> int:
     """Flat items per path of the largest index space of a chunk: the D + 1 vertex rows of a
-    subpath (emitter hits, next-event estimation, light tracing, manifold NEE, photons and
-    gather points queue at most D items per path), the trace's two lanes per path, the
-    connections' D (D - 1) / 2 (s, t) pairs, the glints' light samples per path."""
+    subpath (emitter hits, manifold NEE, photons and gather points queue at most D items
+    per path), the trace's two lanes per path, vertex connection's techniques (next-event
+    estimation D - 1, light tracing D, the connections' (D - 1) (D - 2) / 2 (s, t) pairs,
+    one queue), the glints' light samples per path."""
     D = cfg.max_depth
-    f = max(2, D + 1)
-    if cfg.techniques.connections:
-        f = max(f, D * (D - 1) // 2)
+    f = max(2, D + 1, connect.queue_rows(cfg))
     if cfg.glints:
         f = max(f, glints.SAMPLES)
     return f
@@ -398,37 +398,39 @@ def glint_connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassSta
     return _add(st, {Technique("glint", 1, 1): val})
 
 
-# ---- [s = 1] next-event estimation at camera vertices
-def next_event(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+# ---- vertex connection: [s = 1] next-event estimation at camera vertices, [t = 1] light
+#      tracing (light vertices splatted onto the film through the pinhole), [s, t >= 2]
+#      connections of camera and light vertices, as one work queue (`_connect`)
+def _connection_inputs(scene: Scene, cfg: RenderConfig, st: PassState):
     _, N, D, dt = _dims(scene, cfg)
-    u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt)  # hashed where used
-    return _add(st, connect.next_event(scene, cfg, st.cends, u_nee, st.mis_etas, st.parts))
+    fams = connect.families(cfg)
+    u_nee = cam_o = None
+    if connect.NEE in fams:
+        u_nee = Uniforms.draw(st.keys[2], (D - 1, N, 3), dt)  # hashed where used
+    if connect.LT in fams:
+        o, _ = camera.generate_ray(scene.camera, jnp.int32(0), jnp.zeros((), dt),
+                                   jnp.zeros((), dt))
+        cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)), o)
+    return (scene, cfg, st.lends, st.cends, st.emission, u_nee, cam_o, st.mis_etas, st.parts,
+            fams)
 
 
-# ---- [t = 1] light tracing: light vertices splatted onto the film through the pinhole
-def light_tracing(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    cam = scene.camera
-    _, N, _, dt = _dims(scene, cfg)
-    o, _ = camera.generate_ray(cam, jnp.int32(0), jnp.zeros((), dt), jnp.zeros((), dt))
-    cam_o = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,)), o)
-    return _add(st, connect.light_tracing(scene, cfg, st.lends, st.emission, cam_o,
-                                          st.mis_etas, st.parts))
+def vertex_connection(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    """One image per technique."""
+    return _add(st, connect.vertex_connection(*_connection_inputs(scene, cfg, st)))
 
 
-# ---- [s, t >= 2] connections of camera and light vertices: one image per technique, or
-#      (image only) summed per path
-def connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    return _add(st, connect.connections(scene, cfg, st.lends, st.cends, st.emission, st.parts,
-                                        summed=False))
-
-
-def connections_summed(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    out = connect.connections(scene, cfg, st.lends, st.cends, st.emission, st.parts,
-                              summed=True)
-    if not out:  # max_depth 2: no (s, t >= 2) technique
+def vertex_connection_summed(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    """(image only) Summed per camera path and per pixel."""
+    out = connect.vertex_connection(*_connection_inputs(scene, cfg, st), summed=True)
+    if out is None:
         return st
-    val, bad = out
-    st = _add(st, {Technique("sum", 2, 0): val})
+    cam, splat, bad = out
+    if connect.NEE in connect.families(cfg) or connect.CONN in connect.families(cfg):
+        st = _add(st, {Technique("sum", 1, 0): cam})
+    if splat is not None:
+        P = splat.shape[0]
+        st = _add(st, {Technique("sum", 0, 1): (jnp.arange(P, dtype=jnp.int32), splat)})
     return dataclasses.replace(st, bad=st.bad + bad)
 
 
@@ -511,16 +513,13 @@ def pass_stages(cfg: RenderConfig, image_only: bool = False) -> list[tuple[str, 
         stages.append(("emitter hits", emitter_hits))
     if cam and tech.emitter_hits and cfg.glints:
         stages.append(("glints", glint_connections))
-    if cam and D >= 2 and tech.nee:
-        stages.append(("next-event estimation", next_event))
-    if cam and D >= 3 and cfg.manifold_nee:
-        stages.append(("manifold next-event estimation", manifold_next_event))
     if light and tech.merging == "first":
         stages.append(("merging", photon_gather))
-    if light and tech.light_tracing:
-        stages.append(("light tracing", light_tracing))
-    if light and tech.connections:
-        stages.append(("connections", connections_summed if image_only else connections))
+    if connect.families(cfg):
+        stages.append(("vertex connection",
+                       vertex_connection_summed if image_only else vertex_connection))
+    if cam and D >= 3 and cfg.manifold_nee:
+        stages.append(("manifold next-event estimation", manifold_next_event))
     if light and tech.merging == "all" and D >= 2:
         stages.append(("merging", vertex_merging))
     stages.append(("film", film))
@@ -535,7 +534,8 @@ def technique_images(scene: Scene, key: PRNGKeyArray, cfg: RenderConfig, pass_in
     z_{t-1}, a path of s + t - 2 segments) instead of one image per camera vertex (s = 0);
     the gather's sums are then max_depth - 1 times as wide."""
     if cfg.tuning.chunks != 1:
-        raise ValueError(f"config.tuning.chunks: technique images need one chunk, got {cfg.tuning.chunks}")
+        raise ValueError(f"config.tuning.chunks: technique images need one chunk, got "
+                         f"{cfg.tuning.chunks}")
     check_chunks(scene, cfg)
     st = PassState(key=key, pass_index=pass_index, merge_lengths=merge_lengths)
     for _, stage in pass_stages(cfg):

@@ -51,7 +51,8 @@ def first_true(m, size: int):
                                                        mode="drop")
 
 
-def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None, summed=False):
+def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None, summed=False,
+               summed_rows: int | None = None):
     """`fn` vmapped over the items of `args` (pytree of arrays with leading item axes of
     `mask`'s shape) where `mask` holds; `fill` (pytree of scalars, like fn's output)
     elsewhere. `split`: rounds per full sweep (`round_width`); 1 = one round of every
@@ -62,13 +63,15 @@ def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None, summed=Fa
     `summed` (a mask [J, N] of (technique, path) items, fn returning one array): the
     results summed over J per path instead, ([N, ...] sum, number of non-finite result
     elements): each item's non-finite elements are zeroed and counted, as the film does
-    with a technique's image. The queue then writes no [J, N, ...] buffer (`fill` 0)."""
+    with a technique's image. The queue then writes no [J, N, ...] buffer (`fill` 0).
+    `summed_rows`: fn returns (row, result) instead, each item added into that row of a
+    [summed_rows, ...] sum (e.g. a light-tracing splat into its pixel's row)."""
     shape = mask.shape
     M = mask.size
     flat = jax.tree.map(lambda a: a.reshape((M,) + a.shape[len(shape):]), args)
     W = round_width(M, split)
     if summed:
-        return _summed_map(fn, mask, flat, W)
+        return _summed_map(fn, mask, flat, W, summed_rows)
     if W >= M:  # one round: the dense map, no gathers, no cond
         res = jax.vmap(fn)(*flat)
         m = mask.reshape(M)
@@ -117,33 +120,43 @@ def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None, summed=Fa
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
 
 
-def _summed_map(fn: Callable, mask, flat, W: int):
-    """`masked_map(..., summed=True)`: the items' results added into their path's row."""
+def _summed_map(fn: Callable, mask, flat, W: int, n_rows: int | None = None):
+    """`masked_map(..., summed=True)`: the items' results added into their path's row (or,
+    with `n_rows`, into the row fn returns with its result)."""
     J, N = mask.shape
     M = mask.size
     m = mask.reshape(M)
 
     def clean(*a):  # one item: its non-finite elements zeroed and counted
-        r = fn(*a)
+        row, r = fn(*a) if n_rows is not None else (None, fn(*a))
         ok = jnp.isfinite(r)
-        return jnp.where(ok, r, jnp.zeros((), r.dtype)), jnp.sum(~ok, dtype=jnp.int32)
+        r = jnp.where(ok, r, jnp.zeros((), r.dtype))
+        bad = jnp.sum(~ok, dtype=jnp.int32)
+        return (r, bad) if n_rows is None else (r, bad, row)
 
     if W >= M:  # one round: the dense map, summed over the rows
-        r, bad = jax.vmap(clean)(*flat)
+        res = jax.vmap(clean)(*flat)
+        r, bad = res[0], res[1]
         r = jnp.where(m.reshape((M,) + (1,) * (r.ndim - 1)), r, jnp.zeros((), r.dtype))
         n_bad = jnp.sum(jnp.where(m, bad, 0), dtype=jnp.int32)
-        return r.reshape((J, N) + r.shape[1:]).sum(axis=0), n_bad
+        if n_rows is None:
+            return r.reshape((J, N) + r.shape[1:]).sum(axis=0), n_bad
+        out = jnp.zeros((n_rows,) + r.shape[1:], r.dtype).at[res[2]].add(r, mode="drop")
+        return out, n_bad
     rounds = -(-M // W)
     count = jnp.sum(mask, dtype=jnp.int32)
     order = first_true(m, rounds * W).reshape(rounds, W)
     vfn = jax.vmap(clean)
     shape = jax.eval_shape(vfn, *jax.tree.map(lambda a: a[:1], flat))[0]
-    out0 = (jnp.zeros((N,) + shape.shape[1:], shape.dtype), jnp.zeros((), jnp.int32))
+    rows_out = N if n_rows is None else n_rows
+    out0 = (jnp.zeros((rows_out,) + shape.shape[1:], shape.dtype), jnp.zeros((), jnp.int32))
 
     def work(out, idx):
         g = jnp.minimum(idx, M - 1)
-        r, bad = vfn(*jax.tree.map(lambda a: a[g], flat))
-        lane = jnp.where(idx < M, g % N, N)  # item (j, n) -> path n; padding dropped
+        res = vfn(*jax.tree.map(lambda a: a[g], flat))
+        r, bad = res[0], res[1]
+        lane = g % N if n_rows is None else res[2]  # item (j, n) -> path n, or its row
+        lane = jnp.where(idx < M, lane, rows_out)  # padding dropped
         n_bad = jnp.sum(jnp.where(idx < M, bad, 0), dtype=jnp.int32)
         return out[0].at[lane].add(r, mode="drop"), out[1] + n_bad
 

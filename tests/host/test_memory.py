@@ -328,7 +328,9 @@ def test_index_factor_bounds_the_traced_arrays():
     jp = jax.make_jaxpr(lambda s, k: render_pass(s, k, cfg))(scene, jax.random.key(0))
     n = 128 * 128
     got = _largest_dim(jp.jaxpr)
-    assert index_factor(cfg) == 28
+    # vertex connection's queue: next-event estimation 7 + light tracing 8 + 21 (s, t >= 2)
+    # pairs = 36 techniques of N items, the largest index space of this pass
+    assert index_factor(cfg) == 36
     assert 20 * n < got <= index_factor(cfg) * n + 1, (got / n, index_factor(cfg))
 
 
@@ -349,11 +351,13 @@ def test_the_largest_image_lowers_in_chunks():
     lower = jax.jit(render_pass, static_argnums=2).lower
     with pytest.raises(ValueError, match=r"^config.tuning.chunks: chunks of 1879048192 paths "
                                          r"\(16384 x 16384 x 7 spp in 1\) are more than the "
-                                         r"532610 whose indices fit int32 .* use at least 3584 "
+                                         r"516222 whose indices fit int32 .* use at least 4096 "
                                          r"chunks"):
         lower(scene, jax.random.key(0), cfg)
     k = min_chunks(scene, cfg)
-    assert k == 3584 and MAX_PIXELS**2 * 7 // k <= max_chunk_paths(cfg)
+    # 2^30 // (63 + 64 + 1953 vertex-connection techniques) = 516222 paths per chunk: the
+    # fewest chunks dividing 7 x 2^28 paths with at most that many is 2^12
+    assert k == 4096 and MAX_PIXELS**2 * 7 // k <= max_chunk_paths(cfg)
     with jax.enable_x64(False):
         lower(scene, jax.random.key(0), cfg.tuned(chunks=k))
     with pytest.raises(ValueError, match=r"^config.spp: a pass of 16384 x 16384 x 8 spp = "
@@ -367,7 +371,9 @@ def test_the_largest_image_gets_its_chunks_on_a_large_device(monkeypatch):
     scene = jaxvcm.load_scene(SKY, width=MAX_PIXELS, height=MAX_PIXELS)
     cfg = jaxvcm.RenderConfig(algorithm="vcm", max_depth=8)
     monkeypatch.setattr(_memory, "memory_model", lambda s, c: pytest.fail("probed"))
-    assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 1 << 50})) == 8
+    # 2^30 // 36 items per path (vertex connection at depth 8) = 29,826,161 paths a chunk:
+    # 2^28 paths need 9 chunks, the fewest dividing them 16
+    assert _memory.auto_chunks(scene, cfg, _Dev({"bytes_limit": 1 << 50})) == 16
 
 
 def test_a_queue_beyond_int32_is_refused():

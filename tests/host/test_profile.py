@@ -13,8 +13,8 @@ import jaxvcm
 from jaxvcm._integrator import pass_stages
 
 COMMON = ["setup", "camera rays", "subpaths", "mis partials", "emitter hits",
-          "next-event estimation", "film", "whole pass"]
-LIGHT_SIDE = ["light emission", "light tracing", "connections", "merging"]
+          "vertex connection", "film", "whole pass"]
+LIGHT_SIDE = ["light emission", "merging"]
 
 
 @pytest.fixture(scope="module")
@@ -45,8 +45,11 @@ def test_pass_stages_follow_the_techniques():
     assert "light emission" not in names["pt"] and "camera rays" not in names["lt"]
     assert not set(LIGHT_SIDE) & set(names["pt"])
     assert names["vcm"] == ["setup", "camera rays", "light emission", "subpaths",
-                            "mis partials", "emitter hits", "next-event estimation",
-                            "light tracing", "connections", "merging", "film"]
+                            "mis partials", "emitter hits", "vertex connection", "merging",
+                            "film"]
+    # one queue for next-event estimation, light tracing and the connections, for the
+    # algorithms with any of them (lt: light tracing alone)
+    assert "vertex connection" in names["lt"] and "vertex connection" not in names["bpm"]
     assert names["ppm"].index("merging") < names["ppm"].index("film")
     assert "mis partials" not in names["ppm"]  # ppm weights without partial sums
-    assert names["vcm"].index("connections") < names["vcm"].index("merging")
+    assert names["vcm"].index("vertex connection") < names["vcm"].index("merging")
