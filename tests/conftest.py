@@ -53,15 +53,15 @@ def _release_compiled_programs():
 # ends); the others keep xdist's order. Keys: files as pytest names them (from the
 # repository root); seconds: a whole run on the 2-core machine from a cold compilation cache
 # (`JAXVCM_TEST_COMPILE_LOG`, below, gives them per file).
-_LONG_FILES = {"tests/transport/test_bidir.py": 411, "tests/merge/test_merge.py": 254,
-               "tests/transport/test_spectral.py": 211, "tests/transport/test_mnee.py": 205,
-               "tests/sampling/test_aim.py": 181, "tests/host/test_memory.py": 167,
-               "tests/transport/test_glints.py": 151, "tests/mis/test_mis_recursive.py": 139,
-               "tests/docs/test_tutorials.py": 138, "tests/io/test_cli.py": 120,
-               "tests/fit/test_fit.py": 119, "tests/mis/test_glossy_mis.py": 118,
-               "tests/host/test_devices.py": 111, "tests/transport/test_delta_medium.py": 85,
-               "tests/transport/test_caustics.py": 78, "tests/transport/test_gradients.py": 73,
-               "tests/subpath/test_inline.py": 59}
+_LONG_FILES = {"tests/transport/test_bidir.py": 436, "tests/merge/test_merge.py": 278,
+               "tests/transport/test_spectral.py": 221, "tests/transport/test_mnee.py": 188,
+               "tests/host/test_memory.py": 183, "tests/sampling/test_aim.py": 181,
+               "tests/docs/test_tutorials.py": 149, "tests/transport/test_glints.py": 145,
+               "tests/mis/test_mis_recursive.py": 139, "tests/io/test_cli.py": 115,
+               "tests/mis/test_glossy_mis.py": 115, "tests/host/test_devices.py": 115,
+               "tests/fit/test_fit.py": 113, "tests/transport/test_delta_medium.py": 102,
+               "tests/transport/test_caustics.py": 71, "tests/transport/test_gradients.py": 68,
+               "tests/subpath/test_inline.py": 56}
 
 
 @pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: no error where it is absent

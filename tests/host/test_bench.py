@@ -161,10 +161,13 @@ def test_bench_startup_mode(tmp_path, monkeypatch):
     a = _bench._settings(["--startup", "--algorithms", "vcm", "--startup-runs", "3",
                           "--size", "8", "--out", str(tmp_path / "b.md")])
     times = iter([1.0, 1.2, 0.8,  # import, 3 runs
-                  20.0, 2.0, 22.0, 2.5, 21.0, 2.2])  # (cold, warm) x 3 runs
+                  20.0, 2.0, 22.0, 2.5, 21.0, 2.2,  # (cold, warm) x 3 runs, as the CLI renders
+                  10.0, 2.0, 12.0, 2.2, 11.0, 2.1])  # ... and with --no-glints
+    seen = []
 
     def fake(args, env):
         assert env["JAXVCM_CACHE_DIR"] and "optimization_level" not in env["XLA_FLAGS"]
+        seen.append("--no-glints" in args)
         t = next(times)
         if "render" in args:
             out = args[args.index("--out") + 1]
@@ -181,6 +184,12 @@ def test_bench_startup_mode(tmp_path, monkeypatch):
     assert row["cold first pass"] == "19.50 s" and row["warm first pass"] == "0.70 s"
     assert json.loads((tmp_path / "b_startup.json").read_text())["rows"][0]["all"][
         "warm_process_s"] == [2.0, 2.5, 2.2]
+    # vcm's own program without the glints the command line adds: a second row, last 6 runs
+    assert seen == [False] * 9 + [True] * 6
+    row = _table((tmp_path / "b.md").read_text(), "algorithm")[1]
+    assert row["algorithm"] == "vcm --no-glints"
+    assert row["cold process"] == "11.00 s" and row["cold first pass"] == "9.50 s"
+    assert row["warm process"] == "2.10 s" and row["warm first pass"] == "0.60 s"
 
 
 def test_bench_scaling_mode(tmp_path, monkeypatch):
