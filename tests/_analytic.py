@@ -3,31 +3,55 @@ are in `_scenes`."""
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxvcm
-from jaxvcm._render import render_pass
+from jaxvcm._render import render_pass, with_retry
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3))
-def _passes(scene, keys, config, _n):
+def _passes_fn(scene, keys, config, _n):
     # lax.map, not vmap: a batched predicate would turn the renderer's lax.cond work-queue
     # skips into selects (every round runs, and the program compiles ~25 % longer)
     return jax.lax.map(lambda k: render_pass(scene, k, config), keys)
+
+
+# The suite compiles at XLA's backend optimisation level 0 (tests/conftest.py): most of its
+# programs run for less time than their compilation takes. A statistics run of many paths
+# is the other way round: at level 2 a VCM pool pass of 16 x 16 x 64 paths (depth 4) runs
+# 3.3x faster (0.75 s vs 2.4 s for 8 passes) for 3 s more compilation, so runs of at least
+# 2^18 paths (about where those meet) get the optimised program. Same arithmetic either way.
+OPTIMISED = {"xla_backend_optimization_level": 2}
+LONG_RUN_PATHS = 2**18
+_passes = jax.jit(_passes_fn, static_argnums=(2, 3))
+_passes_optimised = jax.jit(_passes_fn, static_argnums=(2, 3), compiler_options=OPTIMISED)
+_host_pass_optimised = jax.jit(render_pass, static_argnums=(2,), compiler_options=OPTIMISED)
+
+
+def long_run_jit(fun, **kw):
+    """`jax.jit` at XLA's default optimisation level, for a test's program that runs many
+    passes (see `_passes_optimised`)."""
+    return jax.jit(fun, compiler_options=OPTIMISED, **kw)
+
+
+def render_pass_long(scene, key, config, pass_index=0):
+    """`jaxvcm._render.render_pass_host` (the host's merge-capacity re-run included) with
+    the optimised program, for loops of many passes."""
+    return with_retry(_host_pass_optimised, scene, key, config, pass_index, lambda d: d, scene)
 
 
 def render_stats(scene, config, passes, seed=0, batch=8):
     """Per-pixel samples of `passes` independent passes -> (mean image, per-pixel standard
     error of the mean, images [P, H, W, C], total non-finite count)."""
     imgs, bad = [], 0
+    H, W = scene.camera.height, scene.camera.width
+    run = _passes_optimised if passes * H * W * config.spp >= LONG_RUN_PATHS else _passes
     for b0 in range(0, passes, batch):
         n = min(batch, passes - b0)
         keys = jnp.stack([jaxvcm.pass_key(seed, b0 + i) for i in range(n)])
-        img, diag = _passes(scene, keys, config, n)
+        img, diag = run(scene, keys, config, n)
         # merging results with an overflowed hash-grid gather are not estimates: refuse them
         # (raise config.tuning.merge_capacity; the host driver render_pass_host does that itself)
         assert not np.any(np.asarray(diag.merge_overflow)), "merge capacity overflow"

@@ -36,6 +36,8 @@ from jaxvcm._io._schema import MAX_PIXELS
 from jaxvcm._render import pass_key, render_pass
 from jaxvcm.cli import main
 
+from .. import _analytic as A
+
 ROOT = Path(__file__).resolve().parents[2]
 SKY = ROOT / "scenes" / "pool_sky.toml"
 PASSES = 400
@@ -43,8 +45,9 @@ PASSES = 400
 
 def _pass_means(scene, cfg, n):
     """Image means of n passes (one jitted pass at a time: under vmap the queues' conds
-    would become selects and every round would run)."""
-    f = jax.jit(render_pass, static_argnums=2)
+    would become selects and every round would run); hundreds of passes: the optimised
+    program (tests/_analytic.py)."""
+    f = A.long_run_jit(render_pass, static_argnums=2)
     means = []
     for i in range(n):
         img, diag = f(scene, pass_key(11, i), cfg, jnp.int32(i))

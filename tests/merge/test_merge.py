@@ -326,7 +326,7 @@ def test_medium_furnace_with_medium_merging(alg):
     assert abs(r_m - r_want) < 5e-4, r_m
     imgs = []
     for i in range(P):
-        img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(3, i), cfg, 1000 + i)
+        img, diag, cfg = A.render_pass_long(sc, jaxvcm.pass_key(3, i), cfg, 1000 + i)
         assert int(diag.nonfinite) == 0
         imgs.append(np.asarray(img, np.float64))
     x = np.array(imgs).mean(axis=(1, 2)) / Le  # image means per pass, relative to Le
@@ -407,7 +407,7 @@ def test_merging_bias_shrinks_with_radius():
         np.testing.assert_allclose(float(pass_radius(cfg, sc, index).surface), r, rtol=1e-5)
         imgs = []
         for i in range(48 if r > 0.03 else 160):
-            img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(7, i), cfg, index)
+            img, diag, cfg = A.render_pass_long(sc, jaxvcm.pass_key(7, i), cfg, index)
             assert int(diag.nonfinite) == 0
             imgs.append(np.asarray(img, np.float64)[..., 0] * np.pi)  # -> irradiance
         x = np.array(imgs).mean(axis=(1, 2))

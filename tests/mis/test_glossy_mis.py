@@ -38,6 +38,8 @@ import jaxvcm
 from jaxvcm import RenderConfig, technique_images
 from jaxvcm._io._scene_file import read_scene_doc
 
+from .. import _analytic as A
+
 DEPTH = 3
 PASSES = 256
 FLOORS = {
@@ -63,7 +65,7 @@ def _length(label):
     return label.s + label.t - (1 if label.kind == "connection" else 2)
 
 
-@functools.partial(jax.jit, static_argnums=(2,))
+@functools.partial(A.long_run_jit, static_argnums=(2,))  # many passes: the optimised program
 def _passes(scene, keys, cfg):
     def one(k):
         tech, _ = technique_images(scene, k, cfg, merge_lengths=True)

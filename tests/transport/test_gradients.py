@@ -18,6 +18,8 @@ import pytest
 import jaxvcm
 from jaxvcm import RenderConfig
 
+from .. import _analytic as A
+
 K = 4.5
 
 
@@ -44,11 +46,12 @@ def setup():
         # scalar exercises every channel's derivative
         return jnp.sum(mean_floor(scene, sa, ss, key, cfg) * jnp.asarray([1.0, 2.0, 3.0], sa.dtype))
 
-    grad_f = jax.jit(jax.grad(f, argnums=(0, 1)))
+    # 32 gradients and 384 finite-difference passes: the optimised programs (tests/_analytic.py)
+    grad_f = A.long_run_jit(jax.grad(f, argnums=(0, 1)))
     keys = [jaxvcm.pass_key(7, i) for i in range(32)]
     g = [grad_f(sa0, ss0, k) for k in keys]
     g = {p: np.stack([np.asarray(gk[i]) for gk in g]) for i, p in enumerate(("sigma_a", "sigma_s"))}
-    return sa0, ss0, jax.jit(f), keys, g  # g: {param: [keys, C]}
+    return sa0, ss0, A.long_run_jit(f), keys, g  # g: {param: [keys, C]}
 
 
 @pytest.mark.parametrize("param", ["sigma_a", "sigma_s"])
