@@ -80,7 +80,7 @@ REF_SEED_OFFSET = 1_000_003  # reference seed = seed + offset: independent sampl
 MAX_SEED = 2**30
 REL_EPS = 0.01  # relMAE denominator offset
 PROFILE_DEFAULT_SCENES = ("pool.toml",)
-PROFILE_DEFAULT_ALGORITHMS = ("pt", "bdpt", "vcm")
+PROFILE_DEFAULT_ALGORITHMS = ("pt", "bdpt", "ppm", "vcm")
 PROFILE_DEFAULT_SIZE = 256
 PROFILE_TAG = "stage-profile"
 # row order of the profile tables (`jaxvcm.profile_stages` names; others go before the sums)

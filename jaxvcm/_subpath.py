@@ -286,6 +286,12 @@ def step(scene: Scene, cfg: RenderConfig, radiance: bool, index, s: WalkState, u
     beta_next = beta_next * jnp.where(first, float(C), 1.0).astype(dt)
     dispersed = s.dispersed | (bs.disperse & ~scatter & surf)
     alive = v_alive & ~esc & jnp.any(beta_next > 0) & (u[5] < q)
+    if cfg.techniques.merging == "first" and radiance is not False:
+        # ppm reads a camera subpath up to its first non-delta vertex only (the gather
+        # vertex, and the emission along the delta prefix before it: `_merge.photon_gather`):
+        # the lane ends there instead of tracing vertices nothing reads
+        gather = v_alive & ~delta
+        alive = alive & ~(gather if radiance is True else radiance & gather)
     beta_next = beta_next / q
 
     # ---- the recursive MIS quantities, carried on from the pdfs just computed ----

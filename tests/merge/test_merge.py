@@ -420,3 +420,20 @@ def test_merging_bias_shrinks_with_radius():
     (b0, s0), (b1, s1), (b2, s2) = biases
     assert b0 < b1 < 0 and b0 < 2.0 * b1, biases  # ~ r^2: -39 % then -13.5 %
     assert abs(b2) < abs(b1) - K * np.hypot(s1, s2), biases  # and smaller still at 2 cm
+
+
+def test_ppm_camera_lanes_end_at_their_gather_vertex():
+    # ppm reads a camera subpath only up to its first non-delta vertex (the gather
+    # vertex, `_merge.photon_gather`), so its lanes end there. In the diffuse sphere
+    # furnace (camera inside, no roulette before depth 100, max depth 4) every lane's
+    # first vertex is diffuse: exactly one camera vertex per path, 8 x 8 x 1 = 64, where
+    # tracing on would give 4 per path (256, which fails this). bpm on the same pass
+    # traces them all (its merges read every vertex): the count that the planted
+    # mistake would give.
+    Le, a = np.array([0.5, 1.0, 2.0]), np.array([0.3, 0.6, 0.9])
+    sc = jaxvcm.scene_from_dict(S.sphere_furnace(Le, a, w=8, h=8))
+    for alg, n in (("ppm", 64), ("bpm", 64 * 4)):
+        cfg = RenderConfig(algorithm=alg, max_depth=4, rr_depth=100, radius=0.01)
+        img, diag, _ = render_pass_host(sc, jax.random.key(0), cfg, 0)
+        assert int(diag.camera_vertices) == n, (alg, int(diag.camera_vertices))
+        assert np.all(np.isfinite(np.asarray(img))) and float(np.mean(img)) > 0
