@@ -117,7 +117,8 @@ def _sel(kind, nee=None, lt=None, conn=None):
         return dict(vals)[kind]
     out = vals[-1][1]
     for k, v in reversed(vals[:-1]):
-        out = jax.tree.map(lambda a, b, k=k: jnp.where(kind == k, a, b), v, out)
+        out = jax.tree.map(lambda a, b, k=k: a if a is b else jnp.where(kind == k, a, b),
+                           v, out)
     return out
 
 
@@ -498,15 +499,16 @@ def vertex_connection(scene: Scene, cfg: RenderConfig, lig: PathEnds | None,
             yp_infinite=yp_inf, imp=imp, families=fams)
         # ---- the MIS join: the fresh light sample's entries in closed form
         # (`start_entries`), the pinhole's (light tracing), or the subpaths' partials
+        # (a subpath's partials are read once, shared by the families that read them)
+        lig_e = mj.entries(cfg, parts[0], s, t, (n,)) if light_side else None
+        cam_e = mj.entries(cfg, parts[1], t, s, (n,)) if cam_side else None
         Le_ = _entries(cfg, kind,
                        nee=None if NEE not in fams else mj.start_entries(
                            cfg, sg(A0), is_delta_l, sg(etas[0])),
-                       lt=None if LT not in fams else mj.entries(cfg, parts[0], s, t, (n,)),
-                       conn=None if CONN not in fams else mj.entries(cfg, parts[0], s, t, (n,)))
-        Ce_ = _entries(cfg, kind,
-                       nee=None if NEE not in fams else mj.entries(cfg, parts[1], t, s, (n,)),
+                       lt=lig_e if LT in fams else None, conn=lig_e if CONN in fams else None)
+        Ce_ = _entries(cfg, kind, nee=cam_e if NEE in fams else None,
                        lt=None if LT not in fams else mj.entries(cfg, Cp, t, s, (0,)),
-                       conn=None if CONN not in fams else mj.entries(cfg, parts[1], t, s, (n,)))
+                       conn=cam_e if CONN in fams else None)
         if light_side:
             ed, ei = e.delta[n], e.infinite[n]
         dl = _sel(kind, nee=None if NEE not in fams else is_delta_l,

@@ -40,7 +40,11 @@ def test_exported_pass_equals_jitted_and_loads_without_tracing(warm, monkeypatch
     ref_img, ref_diag = _render._render_pass_jit(scene, key, cfg, 2)
     assert _warm.enabled()
     img, diag, _ = _render.render_pass_host(scene, key, cfg, 2)
-    assert np.array_equal(np.asarray(img), np.asarray(ref_img)) and np.asarray(img).sum() > 0
+    # the same values: bit for bit under XLA's default settings; under the suite's compile
+    # settings (`tests/conftest.py`: the elemental emitter, which may fuse the exported
+    # module's wrapper differently) to float32 round-off (measured 1e-7 relative)
+    np.testing.assert_allclose(np.asarray(img), np.asarray(ref_img), rtol=2e-6, atol=1e-9)
+    assert np.asarray(img).sum() > 0
     for f in ("nonfinite", "camera_paths", "light_paths", "camera_vertices", "merge_overflow"):
         assert np.array_equal(np.asarray(getattr(diag, f)), np.asarray(getattr(ref_diag, f)))
     files = _warm.cached_files()
@@ -51,7 +55,7 @@ def test_exported_pass_equals_jitted_and_loads_without_tracing(warm, monkeypatch
     real = _render.render_pass
     monkeypatch.setattr(_render, "render_pass", lambda *a: calls.append(1) or real(*a))
     img2, _, _ = _render.render_pass_host(scene, key, cfg, 2)
-    assert calls == [] and np.array_equal(np.asarray(img2), np.asarray(ref_img))
+    assert calls == [] and np.array_equal(np.asarray(img2), np.asarray(img))  # the same module
     # another pass index reuses the module; another config is another module
     _render.render_pass_host(scene, jaxvcm.pass_key(7, 3), cfg, 3)
     assert len(_warm.cached_files()) == 1
