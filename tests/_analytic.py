@@ -18,13 +18,18 @@ def _passes_fn(scene, keys, config, _n):
     return jax.lax.map(lambda k: render_pass(scene, k, config), keys)
 
 
-# The suite compiles at XLA's backend optimisation level 0 (tests/conftest.py): most of its
-# programs run for less time than their compilation takes. A statistics run of many paths
-# is the other way round: at level 2 a VCM pool pass of 16 x 16 x 64 paths (depth 4) runs
-# 3.3x faster (0.75 s vs 2.4 s for 8 passes) for 3 s more compilation, so runs of at least
-# 2^18 paths (about where those meet) get the optimised program. Same arithmetic either way.
+# The suite compiles at XLA's backend optimisation level 0 without fusion emitters
+# (tests/conftest.py): most of its programs run for less time than their compilation takes.
+# A statistics run of many paths is the other way round: at level 2 a 64 x 64 VCM pool pass
+# (depth 8) runs 3.7x faster (71 ms vs 264 ms) for 3.8 s more compilation (13.6 s vs
+# 9.8 s), so runs of at least 2^17 paths get the optimised program (test_delta_medium,
+# 160 passes of 8 x 8 x 16 paths: 74 -> 38 s for the file). So do runs of many small
+# passes, whose time is the per-pass work of the queues' rounds more than the paths: 1536
+# passes of 8 x 8 paths (test_aim's view-guided pool) 70 -> 28 s for vcm and ppm. Same
+# arithmetic either way.
 OPTIMISED = {"xla_backend_optimization_level": 2}
-LONG_RUN_PATHS = 2**18
+LONG_RUN_PATHS = 2**17
+LONG_RUN_PASSES = 512
 _passes = jax.jit(_passes_fn, static_argnums=(2, 3))
 _passes_optimised = jax.jit(_passes_fn, static_argnums=(2, 3), compiler_options=OPTIMISED)
 _host_pass_optimised = jax.jit(render_pass, static_argnums=(2,), compiler_options=OPTIMISED)
@@ -47,7 +52,8 @@ def render_stats(scene, config, passes, seed=0, batch=8):
     error of the mean, images [P, H, W, C], total non-finite count)."""
     imgs, bad = [], 0
     H, W = scene.camera.height, scene.camera.width
-    run = _passes_optimised if passes * H * W * config.spp >= LONG_RUN_PATHS else _passes
+    long = passes * H * W * config.spp >= LONG_RUN_PATHS or passes >= LONG_RUN_PASSES
+    run = _passes_optimised if long else _passes
     for b0 in range(0, passes, batch):
         n = min(batch, passes - b0)
         keys = jnp.stack([jaxvcm.pass_key(seed, b0 + i) for i in range(n)])

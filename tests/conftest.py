@@ -59,15 +59,21 @@ def _release_compiled_programs():
 # ends); the others keep xdist's order. Keys: files as pytest names them (from the
 # repository root); seconds: a whole run on the 2-core machine from a cold compilation cache
 # (`JAXVCM_TEST_COMPILE_LOG`, below, gives them per file).
-_LONG_FILES = {"tests/transport/test_bidir.py": 436, "tests/merge/test_merge.py": 278,
-               "tests/transport/test_spectral.py": 221, "tests/transport/test_mnee.py": 188,
-               "tests/host/test_memory.py": 183, "tests/sampling/test_aim.py": 181,
-               "tests/docs/test_tutorials.py": 149, "tests/transport/test_glints.py": 145,
-               "tests/mis/test_mis_recursive.py": 139, "tests/io/test_cli.py": 115,
-               "tests/mis/test_glossy_mis.py": 115, "tests/host/test_devices.py": 115,
-               "tests/fit/test_fit.py": 113, "tests/transport/test_delta_medium.py": 102,
-               "tests/transport/test_caustics.py": 71, "tests/transport/test_gradients.py": 68,
-               "tests/subpath/test_inline.py": 56}
+_LONG_FILES = {"tests/transport/test_bidir.py": 315, "tests/merge/test_merge.py": 193,
+               "tests/fit/test_fit.py": 174, "tests/sampling/test_aim.py": 168,
+               "tests/docs/test_tutorials.py": 164, "tests/transport/test_spectral.py": 162,
+               "tests/host/test_memory.py": 147, "tests/transport/test_mnee.py": 137,
+               "tests/transport/test_glints.py": 117, "tests/io/test_cli.py": 111,
+               "tests/transport/test_cornell.py": 109, "tests/mis/test_mis_recursive.py": 108,
+               "tests/host/test_devices.py": 107, "tests/mis/test_glossy_mis.py": 102,
+               "tests/transport/test_delta_medium.py": 69, "tests/transport/test_caustics.py": 67,
+               "tests/mis/test_join_pdfs.py": 66, "tests/manifold/test_solver.py": 55,
+               "tests/mis/test_mis_partial.py": 55, "tests/transport/test_transport.py": 48,
+               "tests/merge/test_precise.py": 47, "tests/transport/test_golden.py": 44,
+               "tests/subpath/test_inline.py": 44, "tests/subpath/test_queue.py": 42,
+               "tests/io/test_snapshots.py": 41, "tests/geometry/test_hard_cases.py": 41,
+               "tests/mis/test_techniques.py": 41, "tests/fit/test_fit_spectral.py": 41,
+               "tests/geometry/test_geometry.py": 40}
 
 
 @pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: no error where it is absent
