@@ -22,13 +22,14 @@ def _passes_fn(scene, keys, config, _n):
 # (tests/conftest.py): most of its programs run for less time than their compilation takes.
 # A statistics run of many paths is the other way round: at level 2 a 64 x 64 VCM pool pass
 # (depth 8) runs 3.7x faster (71 ms vs 264 ms) for 3.8 s more compilation (13.6 s vs
-# 9.8 s), so runs of at least 2^17 paths get the optimised program (test_delta_medium,
-# 160 passes of 8 x 8 x 16 paths: 74 -> 38 s for the file). So do runs of many small
+# 9.8 s), so runs of at least 2^16 paths get the optimised program (test_delta_medium,
+# 160 passes of 8 x 8 x 16 paths: 74 -> 38 s for the file; test_cornell, test_glossy_mis
+# and test_caustics 159 -> 139 s on two workers). So do runs of many small
 # passes, whose time is the per-pass work of the queues' rounds more than the paths: 1536
 # passes of 8 x 8 paths (test_aim's view-guided pool) 70 -> 28 s for vcm and ppm. Same
 # arithmetic either way.
 OPTIMISED = {"xla_backend_optimization_level": 2}
-LONG_RUN_PATHS = 2**17
+LONG_RUN_PATHS = 2**16
 LONG_RUN_PASSES = 512
 _passes = jax.jit(_passes_fn, static_argnums=(2, 3))
 _passes_optimised = jax.jit(_passes_fn, static_argnums=(2, 3), compiler_options=OPTIMISED)
