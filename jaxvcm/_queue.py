@@ -6,7 +6,7 @@ compacted (`first_true` of the mask, in order) and processed `width` at a time i
 scalar, and the results are scattered back to the items' places. There are enough rounds
 for every item, so nothing is dropped and no capacity can overflow; the cost follows the
 number of wanted items. (Under an outer `vmap` the `cond` becomes a select and every
-round runs: still correct, no faster.)
+round runs: still correct, no faster; so passes are batched by loops, not by `vmap`.)
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def round_width(n: int, split: int) -> int:
     """Items per round of a queue over n items: n / split, but not below MIN_ROUND (small
     batches: a few wide rounds); at most 2 MIN_ROUND items run as one round (the dense map:
     a second round's gathers, scatters and `cond` cost more than the dead items they would
-    skip, and under an outer `vmap`, as in the fits, the `cond` skips nothing)."""
+    skip)."""
     if n <= 2 * MIN_ROUND:
         return n
     return max(-(-n // split), min(n, MIN_ROUND))

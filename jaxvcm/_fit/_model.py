@@ -9,8 +9,8 @@ is rendered with `passes` passes with the fixed keys `pass_key(seed, i)`, i < pa
 (common random numbers: the same keys at every iterate, so the objective is a deterministic
 function of theta; in spectral mode the keys fix the hero wavelengths too), the passes are
 averaged and each region's pixels are averaged. Scenes with the same static structure
-(shapes, kinds, image size, n_wavelengths) are stacked and rendered with one `vmap`, so
-they share one compiled program. The same function serves RGB `Scene`s (theta = ln sigma_a,
+(shapes, kinds, image size, n_wavelengths) are stacked and rendered one after another by
+one `lax.map`, so they share one compiled program. The same function serves RGB `Scene`s (theta = ln sigma_a,
 ln sigma_s; linear sRGB film) and `SpectralScene`s (theta = WaterModel leaves; XYZ film):
 only the map (theta, scene) -> rendered pass differs (`region_colours_fn`,
 `spectral_region_colours_fn`).
@@ -29,7 +29,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh, PartitionSpec
 
 from .._config import RenderConfig
 from .._integrator import max_chunk_paths
@@ -165,16 +165,42 @@ def _groups(scenes: Sequence, anonymous: Callable) -> list[tuple[list[int], obje
     return [(idx, jax.tree.map(lambda *a: jnp.stack(a), *members)) for idx, members in groups]
 
 
-def _shard_passes(x, devices):
-    """`x` [P, ...] laid out over the largest number of `devices` that divides P (a
-    sharding constraint: jit's partitioner then splits the vmap over passes, and with it
-    the Jacobian's columns' work, over the devices; the pass mean becomes a reduction)."""
-    P_ = x.shape[0]
-    n = max(d for d in range(1, len(devices) + 1) if P_ % d == 0)
+def _pass_devices(passes: int, devices) -> int:
+    """How many of `devices` the passes are spread over: the largest number that divides
+    `passes`."""
+    return max(d for d in range(1, len(devices) + 1) if passes % d == 0)
+
+
+def _mean_over_passes(render_pass_of, ctx, keys, idx, devices):
+    """The mean of `render_pass_of(ctx, key, i) -> (image, overflow)` over the passes
+    `keys` [P], `idx` [P], and whether any pass overflowed. The passes run one after another
+    (`lax.scan`), not under `vmap`: the pass is traced once, unbatched, so its run-time
+    branches (the work queues' `lax.cond`s) stay branches. On n > 1 devices each device
+    loops over P / n of the passes (`shard_map` over a 1-D mesh; `ctx`, the parameters and
+    the scene, replicated) and the sum is a `psum`."""
+    P_ = keys.shape[0]
+    n = _pass_devices(P_, devices)
+
+    def passes_sum(ctx, key_data, idx):  # -> the images' sum, any overflow (int32)
+        keys = jax.random.wrap_key_data(key_data)
+        imgs, ovs = jax.lax.scan(lambda c, ki: (c, render_pass_of(ctx, *ki)), None,
+                                 (keys, idx))[1]
+        return jnp.sum(imgs, axis=0), jnp.any(ovs).astype(jnp.int32)
+
+    key_data = jax.random.key_data(keys)
     if n == 1:
-        return x
-    mesh = Mesh(np.array(devices[:n]), ("passes",))
-    return jax.lax.with_sharding_constraint(x, NamedSharding(mesh, PartitionSpec("passes")))
+        total, ov = passes_sum(ctx, key_data, idx)
+    else:
+        def body(ctx, key_data, idx):
+            return jax.tree.map(lambda x: jax.lax.psum(x, "passes"),
+                                passes_sum(ctx, key_data, idx))
+
+        spec = PartitionSpec("passes")
+        total, ov = jax.shard_map(body, mesh=Mesh(np.array(devices[:n]), ("passes",)),
+                                  in_specs=(PartitionSpec(), spec, spec),
+                                  out_specs=(PartitionSpec(), PartitionSpec()),
+                                  check_vma=False)(ctx, key_data, idx)
+    return total / P_, ov > 0
 
 
 def region_colours(scenes: Sequence, regions: Sequence[Region], passes: int, seed: int,
@@ -186,7 +212,7 @@ def region_colours(scenes: Sequence, regions: Sequence[Region], passes: int, see
     pass of one (unstacked) scene. Default keys: pass_key(seed, i), i < passes; other keys
     [P] with pass indices [P] render other passes with the same program. The passes (and so
     the fit's Jacobian, scenes x regions x keys) are spread over `devices` (default: every
-    local device; `_shard_passes`); the values do not depend on how many, to float32
+    local device; `_mean_over_passes`); the values do not depend on how many, to float32
     rounding of the mean."""
     devs = jax.local_devices() if devices is None else list(devices)
     groups = _groups(scenes, anonymous)
@@ -199,15 +225,15 @@ def region_colours(scenes: Sequence, regions: Sequence[Region], passes: int, see
 
     def fn(theta, keys=keys, idx=idx):
         p = params(theta)
-        keys, idx = _shard_passes(keys, devs), _shard_passes(idx, devs)
         images = []
         overflow = jnp.zeros((), bool)
         for _, stacked in groups:
             def passes_of(scene):
-                imgs, ov = jax.vmap(lambda key, i: render(scene, p, key, i))(keys, idx)
-                return jnp.mean(imgs, axis=0), jnp.any(ov)
+                return _mean_over_passes(lambda c, key, i: render(c[0], c[1], key, i),
+                                         (scene, p), keys, idx, devs)
 
-            imgs, ov = jax.vmap(passes_of)(stacked)
+            # one scene of the group after another: the pass is traced once, unbatched
+            imgs, ov = jax.lax.map(passes_of, stacked)
             images.append(imgs)
             overflow = overflow | jnp.any(ov)
         cols = []

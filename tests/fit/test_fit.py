@@ -119,8 +119,8 @@ def test_jacobian_matches_central_differences(algorithm):
     theta0 = jnp.asarray(np.log(np.concatenate([sa0, ss0])), jnp.float32)
     h = np.array([0.05] * 3 + [0.2] * 3, np.float32)
     # run 13 x NKEYS times: compiled at XLA's default backend optimisation level (2), not
-    # the suite's 0 (tests/conftest.py), which costs vcm ~2x the compilation and saves 4x
-    # per call (measured: 9 -> 17 CPU-s once, 0.38 -> 0.09 CPU-s per call x 208)
+    # the suite's 0 (tests/conftest.py), which costs vcm more compilation and saves more run
+    # (measured alone: 7.3 -> 10.6 s once, 40 -> 9 ms per call x 208)
     val_and_jac = jax.jit(jac_and_val).lower(
         theta0, jnp.stack([jaxvcm.pass_key(11, 0)]), jnp.zeros((1,), jnp.int32)).compile(
         compiler_options={"xla_backend_optimization_level": 2})
