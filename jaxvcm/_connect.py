@@ -37,7 +37,7 @@ from ._mnee import emitter_hit_factor as mnee_factor
 from ._mis import mis_form
 from ._path import both_dispersed, log_n_light_tracing, reverse_pdf
 from ._queue import masked_map
-from ._scene import DELTA_LIGHTS, LIGHT_BACKGROUND, LIGHT_SKY, Scene
+from ._scene import DELTA_LIGHTS, LIGHT_BACKGROUND, LIGHT_SKY, MAT_DIELECTRIC, Scene
 from ._subpath import PathEnds, rows, vertex_table
 from ._uniforms import Uniforms
 from ._vec import Vec3
@@ -313,7 +313,7 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
     else:
         rec_at = lambda j, n: jax.tree.map(lambda a: a[j - 1, n], verts)  # noqa: E731
 
-    def item(i, n):  # z_j, j = i + 1: technique (0, j + 1)
+    def item(i, n, glint=True):  # z_j, j = i + 1: technique (0, j + 1)
         z, zp, r = cam_at(i + 1, n), cam_at(i, n), rec_at(i + 1, n)
         esc = r.escaped
         lid = jnp.where(esc, sky, jnp.maximum(r.light, 0))
@@ -331,7 +331,7 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
             w = sg(mis_form(cfg).join_weight(cfg, s0, i + 2, L0, parts[1], sg(A_s), sg(A_s1),
                                              one, one, jnp.zeros((), bool), esc, sg(log_n),
                                              lanes=((0,), (n,))))
-        if pixel is not None:  # the glints' paths: the emitter hit's share of them
+        if pixel is not None and glint:  # the glints' paths: the emitter hit's share of them
             z0, z1 = cam_at(0, n), cam_at(1, n)
             w = w * glint_share(scene, cfg, z0.p, z1, z, lid, esc, i + 1, pixel[n])
         return z.beta * r.Le * w
@@ -341,7 +341,14 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (D, N))
     # narrow rounds (N / 8 items): a round costs its width whatever it holds, and the hits
     # are few (in a pool; with a sky, up to one per path)
-    return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
+    if pixel is None:
+        return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
+    # the glint share's Newton solves only where the path can be a glint's, z_2 seen in
+    # the water surface at z_1: a queue of its own, far narrower (a few such hits a pass)
+    water = scene.water
+    glint = (ii == 1) & ((cam.kind[1] == MAT_DIELECTRIC) & (cam.mat[1] == water.mat))[None, :]
+    return (masked_map(lambda i, n: item(i, n, glint=False), ok & ~glint, (ii, nn), 0.0, 8 * D)
+            + masked_map(item, ok & glint, (ii, nn), 0.0, 64 * D))
 
 
 def _entries(cfg: RenderConfig, kind, nee=None, lt=None, conn=None):

@@ -176,11 +176,11 @@ def index_factor(cfg: RenderConfig) -> int:
     subpath (emitter hits, manifold NEE, photons and gather points queue at most D items
     per path), the trace's two lanes per path, vertex connection's techniques (next-event
     estimation D - 1, light tracing D, the connections' (D - 1) (D - 2) / 2 (s, t) pairs,
-    one queue), the glints' light samples per path."""
+    one queue), the glints' light samples per path times their extra seeds."""
     D = cfg.max_depth
     f = max(2, D + 1, connect.queue_rows(cfg))
     if cfg.glints:
-        f = max(f, glints.SAMPLES)
+        f = max(f, glints.SAMPLES * (glints.SEEDS - 1))
     return f
 
 
