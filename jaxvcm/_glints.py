@@ -41,9 +41,9 @@ these paths) of every other path. So on every path w_g + w_eh = 1 whatever the s
 misses (a root outside every seed's basin): the estimator is unbiased by construction,
 and only its variance depends on how often F_j finds the root (a missed root's emitter
 hit is a sample of the light's whole radiance at weight 1). Point lights and the sun
-cannot be hit (p_eh = 0): w_g = 1, light no other technique finds. (The roulette's survival at s is left out of p_eh: no path this short
-meets the roulette in a shipped configuration, and any positive pdfs keep the weights'
-sum 1.)
+cannot be hit (p_eh = 0): w_g = 1, light no other technique finds. (The roulette's
+survival at s is left out of p_eh: no path this short meets the roulette in a shipped
+configuration, and any positive pdfs keep the weights' sum 1.)
 """
 
 from __future__ import annotations
@@ -158,9 +158,9 @@ def roots(scene: Scene, pixel, c: Vec3, b, refract, exists, b_dir: bool = False)
     (ok [SEEDS], s [SEEDS] stopped points), each distinct root marked once. Newton from the
     pixel centre's seed; where its root lies in the pixel or a neighbour (the pixel may hold
     a second root: the pairs that merge at a fold of the glint), Newton from the other
-    points of a 3 x 3 grid over the pixel as well. A deterministic function of (pixel, b): the glint
-    technique counts the roots it returns, the emitter hit takes its share of exactly those
-    paths (`emitter_share`)."""
+    points of a 3 x 3 grid over the pixel as well. A deterministic function of (pixel, b):
+    the glint technique counts the roots it returns, the emitter hit takes its share of
+    exactly those paths (`emitter_share`)."""
     ok0, s0, more = _centre(scene, pixel, c, b, refract, b_dir)
     okm, sm = _more(scene, pixel, c, b, refract, b_dir, ok0, s0)
     ok = jnp.concatenate([ok0[None], okm & more])
@@ -292,10 +292,11 @@ def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, ref
 def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES):
     """The glint technique for every camera path (its pixel [N]): [N, C] per path, the
     film's mean over its pixel's samples as every camera technique. Every path samples
-    `samples` light points and runs its pixel's Newton solve for each; only the (path,
-    point) items whose solve found a root in the pixel (a few per cent in a pool) trace
-    the shadow rays and evaluate the Jacobians, as one work queue (`_queue.masked_map`);
-    the path's value is the mean over its points."""
+    `samples` light points and runs its pixel's centre solve for each (`roots`; the other
+    seeds' solves for the few points whose centre root lands in or beside the pixel, a
+    work queue); only the roots in the pixel (a few per cent of the points in a pool)
+    trace the shadow rays and evaluate the Jacobians, as work queues
+    (`_queue.masked_map`); the path's value is the mean over its points."""
     N = pixel.shape[0]
     K = N * samples
     dt = scene.camera.origin.dtype
