@@ -8,8 +8,9 @@ surface and happens to land on the light. No connection joins s (a delta vertex)
 merge has a non-delta vertex to merge at. With a small light each such sample is 0 or the
 light's whole radiance: the glints in the waves are the noisiest part of a pool's image.
 
-The glint technique (`glints`) samples y on a light (`_lights.sample_emission`) for every
-camera path and finds the points s whose direction from the pinhole falls in that path's
+The glint technique (`glints`) samples points y on a light (`_lights.sample_emission`,
+several per camera path, stratified over the light: `light_uniforms`) and for each finds
+the points s whose direction from the pinhole falls in that path's
 own pixel j: Newton (`_manifold.solve_near`) from seeds fixed per pixel (rays through the
 pixel on the water's mean level): its centre's, and where that root lands in or beside the
 pixel, the other points of a 3 x 3 grid over it, as two roots of one light point can share
@@ -33,7 +34,9 @@ MIS (power or balance heuristic, beta). In the area measure of y, per sample of 
     p_eh = W(w) P_sel(s) |d w / d A_y| P_pass(c, s)  the camera ray through the surface
 (P_sel: the camera path's Fresnel choice of the lobe at s; P_pass: its water's
 distance-sampling factor, 1 above the water). With n light points per camera path
-(`SAMPLES`, each point's value divided by n) the glint technique takes
+(`SAMPLES`, each point's value divided by n; stratified: point k lies in its own part of
+the light of probability 1/n, so the mean of the n values f / p_g is still unbiased for
+the integral of w_g f, whatever weights that sum to one on each path) the glint technique takes
 w_g = (n p_g)^beta / ((n p_g)^beta + p_eh^beta) of the paths F_j returns, the emitter hit
 w_eh = 1 - w_g of those (`emitter_share`, evaluated at every emitter hit of that shape
 with the same F_j) and w_eh = 1 (its weight without glints, as no other technique makes
@@ -73,10 +76,11 @@ ITERS = 8  # Newton iterations from a pixel's seed (the root lies within a pixel
 # 99.39 %, with the grid 99.97 % (all 72); the grid runs for 5.7 % of the light points of
 # random pixels (0.5 % at 256 x 256, where 1,498 of 1,498 roots of 48 points are found)
 SEEDS = 9
-# light points per camera path: the technique's variance is that of the light point alone
-# (the pixel's seed is fixed), and its search is cheap next to the pass, so several points
-# per path cut it at little cost; their count n multiplies the technique's pdf in the MIS
-# weights (the balance / power heuristic with n samples, Veach 1997 9.2)
+# light points per camera path, stratified over the light (`light_uniforms`): the
+# technique's variance is that of the light points alone (the pixel's seeds are fixed),
+# and their search is cheap next to their contributions, so several points per path cut
+# it at little cost; their count n multiplies the technique's pdf in the MIS weights (the
+# balance / power heuristic with n samples, Veach 1997 9.2)
 SAMPLES = 8
 STREAM = 0x67_6C_69_6E  # fold_in tag of the glint samples' key ("glin")
 
@@ -289,6 +293,28 @@ def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, ref
     return jnp.where(vis, val * wgt, 0.0)
 
 
+def strata(samples: int) -> tuple[int, int]:
+    """(gx, gy): the grid of a path's light points over the light's position, gx gy =
+    `samples`, gx the largest divisor not above the square root (8 points: 2 x 4)."""
+    gx = max(d for d in range(1, int(samples**0.5) + 1) if samples % d == 0)
+    return gx, samples // gx
+
+
+def light_uniforms(key, N: int, samples: int, dt):
+    """[N samples, 5] uniforms of the glints' light points (`_lights.sample_emission`'s):
+    the `samples` points of a path stratified over the two that place the point on the
+    light (u[1], u[2]: a jittered gx x gy grid, `strata`), so a pixel that sees part of the
+    light gets nearly the same number of points in that part every pass. Point k is
+    uniform in its stratum (probability 1/`samples`), so the points together are uniform
+    (pdf p_A(y)) and the mean of their values f / p_A is unbiased."""
+    u = jax.random.uniform(key, (N, samples, 5), dt)
+    gx, gy = strata(samples)
+    i = jnp.arange(samples)
+    u = u.at[..., 1].set(((i % gx).astype(dt) + u[..., 1]) / gx)
+    u = u.at[..., 2].set(((i // gx).astype(dt) + u[..., 2]) / gy)
+    return u.reshape(N * samples, 5)
+
+
 def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES):
     """The glint technique for every camera path (its pixel [N]): [N, C] per path, the
     film's mean over its pixel's samples as every camera technique. Every path samples
@@ -300,7 +326,7 @@ def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES):
     N = pixel.shape[0]
     K = N * samples
     dt = scene.camera.origin.dtype
-    u = jax.random.uniform(key, (K, 5), dt)
+    u = light_uniforms(key, N, samples, dt)
     refract, exists = law(scene, vec.from_array(scene.camera.origin))
     c = vec.from_array(scene.camera.origin)
     e = jax.vmap(lambda uu: lights.sample_emission(scene, uu))(u)

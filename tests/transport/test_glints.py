@@ -161,6 +161,42 @@ def test_flat_water_glint_closed_form(view):
         np.testing.assert_allclose(got[hit], np.broadcast_to(v, got[hit].shape), rtol=2e-4)
 
 
+# ---------------------------------------------------------------- light points
+@pytest.mark.parametrize("samples", [1, 6, 8])
+def test_a_path_s_light_points_are_stratified_and_uniform_together(samples):
+    # gx x gy strata over the light's two position uniforms (8 -> 2 x 4, 6 -> 2 x 3): every
+    # path has one point in each stratum, uniform within it, so the n points together are
+    # uniform on the unit square (each stratum has probability 1/n, and the mean of the n
+    # values f / p is unbiased): the pooled mean of a uniform is 1/2 with standard error
+    # sqrt(1/12 / (N n)) at most (stratified, it is smaller); the other three uniforms are
+    # untouched, i.i.d. uniform per point
+    gx, gy = glints.strata(samples)
+    assert gx * gy == samples and gx <= gy and (samples != 8 or (gx, gy) == (2, 4))
+    N = 4096
+    u = np.asarray(glints.light_uniforms(jax.random.key(1), N, samples, jnp.float32))
+    u = u.reshape(N, samples, 5)
+    assert u.min() >= 0.0 and u.max() <= 1.0
+    cell = np.floor(u[..., 1] * gx).astype(int) + gx * np.floor(u[..., 2] * gy).astype(int)
+    np.testing.assert_array_equal(np.sort(cell, axis=1), np.broadcast_to(np.arange(samples),
+                                                                          (N, samples)))
+    for c in range(5):  # the pooled points: uniform (mean 1/2, variance 1/12)
+        x = u[..., c].ravel()
+        assert abs(x.mean() - 0.5) < 4.0 * np.sqrt(1.0 / 12.0 / x.size)
+        assert abs(x.var() - 1.0 / 12.0) < 0.005
+        # 10 bins of equal count within 4 standard errors (a stratum left out would empty
+        # whole bins)
+        h = np.histogram(x, bins=10, range=(0.0, 1.0))[0] / x.size
+        assert np.all(np.abs(h - 0.1) < 4.0 * np.sqrt(0.1 * 0.9 / x.size))
+    for c in (0, 3, 4):  # the uniforms that do not place the point: uniform per point
+        for k in range(samples):
+            x = u[:, k, c]
+            assert abs(x.mean() - 0.5) < 4.0 * np.sqrt(1.0 / 12.0 / N)
+    # planted mistake: independent points leave some path's strata empty
+    v = np.asarray(jax.random.uniform(jax.random.key(1), (N, samples, 5)))
+    cell = np.floor(v[..., 1] * gx).astype(int) + gx * np.floor(v[..., 2] * gy).astype(int)
+    assert samples == 1 or np.any(np.sort(cell, axis=1) != np.arange(samples))
+
+
 # ---------------------------------------------------------------- MIS weights
 def test_weights_sum_to_one_on_the_paths_the_solver_returns():
     # random light points y of the shipped pool's light, each pixel's root F_j(y) (the
