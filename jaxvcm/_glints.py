@@ -15,7 +15,24 @@ own pixel j: Newton (`_manifold.solve_near`) from seeds fixed per pixel (rays th
 pixel on the water's mean level): its centre's, and where that root lands in or beside the
 pixel, the other points of a 3 x 3 grid over it, as two roots of one light point can share
 a pixel (the pairs that merge at a fold of the glint). Call the result F_j(y): the distinct
-roots of the law in the pixel that these seeds reach (`roots`), often none.
+roots of the law in the pixel that these seeds reach (the centre's and the first `EXTRA`
+others, `roots`), often none.
+
+The cull (`_may_hold`). Most (pixel, light point) pairs hold no root, and a bound says so
+before any Newton step. The surface points seen in pixel j lie in the frustum of its rays
+between the heights level +- sum |A|, narrowed to h(r1) +- L rho_h (L = sum |A| |k| bounds
+the slope, rho_h the frustum's horizontal reach from r1, the centre ray at the mean
+level). A root s needs the surface's slope grad h(s) to equal the slope the law asks for,
+g*(s) = -(H_x, H_z) / H_y with H = eta_a w_a + eta_b w_b. Over the frustum, measured from
+r (the centre ray at h(r1)): w_a turns by at most the pixel's angular radius alpha and w_b
+by at most asin(rho / |y - r|) (rho: the frustum's 3-D reach), so |H(s) - H(r)| <= e =
+eta_a alpha + eta_b asin(rho / |y - r|) and |g*(s) - g*(r)| <= e (|H_y| + |H_xz|) /
+(|H_y| (|H_y| - e)); the surface's slope moves by at most K rho_h (K = sum |A| k^2 bounds
+the heightfield's Hessian). Where |g*(r) - grad h(r)| exceeds their sum (and a margin for
+rounding; the pixel widened by `EDGE`) no root can lie in the pixel: F_j(y) is empty
+without a solve. The bound is conservative, so F_j is the same function with or without
+it (tests: every root of a full search keeps its pixel); it leaves 2.6 % of the pairs to
+the solves at 256 x 256 on the default pool, 18 % at 96 x 96, 40 % at 64 x 64.
 The contribution of a root, per sample of pixel j (the camera's pixel importance W(w) =
 `camera_importance`: 1 / (A_pix cos^3)):
 
@@ -76,6 +93,13 @@ ITERS = 8  # Newton iterations from a pixel's seed (the root lies within a pixel
 # 99.39 %, with the grid 99.97 % (all 72); the grid runs for 5.7 % of the light points of
 # random pixels (0.5 % at 256 x 256, where 1,498 of 1,498 roots of 48 points are found)
 SEEDS = 9
+# the roots beyond the centre's that F_j keeps per light point and pixel: the first
+# distinct ones in seed order (the queues then hold 1 + EXTRA items per light point, not
+# SEEDS). Roots per (pixel, light point) with any, default pool, 400 light points: at
+# 24 x 24, 9,095 one, 1,381 two, 225 three, none more; at 64 x 64, 12,380 one, 76 two; at
+# 256 x 256 (100 points), 3,122 one, 2 two. A root F_j does not return is rendered by the
+# emitter hits at their full weight, as any the seeds miss (module doc)
+EXTRA = 2
 # light points per camera path, stratified over the light (`light_uniforms`): the
 # technique's variance is that of the light points alone (the pixel's seeds are fixed),
 # and their search is cheap next to their contributions, so several points per path cut
@@ -116,6 +140,81 @@ def _seed(scene: Scene, pixel, su, sv):
     return jnp.clip(x, fp[0], fp[1]), jnp.clip(z, fp[2], fp[3]), ok
 
 
+# the pixel widened by this fraction on every side in `_may_hold` (a root's pixel is
+# assigned from its rounded direction)
+EDGE = 1.0 / 64.0
+
+
+def _may_hold(scene: Scene, pixel, c: Vec3, b, refract, b_dir: bool):
+    """False only where no root of c -> s -> b can have its direction from c in `pixel`
+    (module doc: the cull), so that `roots` solves only where a root may lie. The surface
+    points seen in the pixel lie in the frustum of its rays between two heights; over it
+    the slope the law asks for moves by at most dg and the surface's slope by at most
+    K rho_h; a root needs them to meet. Conservative: where the frustum is unbounded (a
+    ray near the horizon, the camera within the waves' heights) or the bound degenerates
+    (b close to the surface, |H_y| small), True."""
+    w = jax.lax.stop_gradient(scene.water)
+    cam = scene.camera
+    dt = c.x.dtype
+    c = Vec3(*(jax.lax.stop_gradient(a) for a in c))
+    b = Vec3(*(jax.lax.stop_gradient(a) for a in b))
+    A, L, _ = manifold._waves(w)
+    K = jnp.sum(jnp.abs(w.amp) * (w.kx * w.kx + w.kz * w.kz)) if w.n_waves else jnp.zeros((), dt)
+    half = jnp.asarray(0.5, dt)
+    _, d0 = generate_ray(cam, pixel, half, half)
+    lo_e, hi_e = jnp.asarray(-EDGE, dt), jnp.asarray(1.0 + EDGE, dt)
+    ds = [generate_ray(cam, pixel, u, v)[1] for u in (lo_e, hi_e) for v in (lo_e, hi_e)]
+    # the pixel's angular radius (from the chords: arccos of a cosine near 1 loses it)
+    chord = jnp.max(jnp.stack([vec.length(d - d0) for d in ds]))
+    alpha = 2.0 * jnp.arcsin(jnp.minimum(0.5 * chord, 1.0))
+    # the frustum is bounded where every ray crosses both heights ahead of c
+    side = jnp.sign(w.level - c.y)
+    sure = jnp.all(jnp.stack([d.y * side for d in ds + [d0]]) > 1e-6)
+    sure = sure & (jnp.abs(c.y - w.level) > A)
+
+    def on(d, y):  # the point of ray d at height y
+        t = (y - c.y) / jnp.where(jnp.abs(d.y) > 1e-6, d.y, 1e-6)
+        return c + d * t
+
+    def reach(r, lo, hi):  # (horizontal, 3-D) distance from r to the frustum's corners
+        ps = [on(d, y) for d in ds for y in (lo, hi)]
+        h = jnp.stack([jnp.sqrt((p.x - r.x) ** 2 + (p.z - r.z) ** 2) for p in ps])
+        f = jnp.stack([vec.length(p - r) for p in ps])
+        return jnp.max(h), jnp.max(f)
+
+    lo, hi = w.level - A, w.level + A
+    r1 = on(d0, w.level)
+    rh1, _ = reach(r1, lo, hi)
+    h1, _, _ = geometry.water_height(w, r1.x, r1.z)
+    # the surface's height over the frustum's horizontal reach: h(r1) +- L rho_h
+    lo, hi = jnp.maximum(lo, h1 - L * rh1), jnp.minimum(hi, h1 + L * rh1)
+    r = on(d0, h1)
+    rh, rho = reach(r, lo, hi)
+    _, gx, gz = geometry.water_height(w, r.x, r.z)
+    E = manifold._ends(w, c, b, refract, b_dir)
+    wa = vec.normalize(c - r)
+    if b_dir:
+        wb, delta_b = vec.normalize(-b), jnp.zeros((), dt)
+        far = jnp.asarray(True)
+    else:
+        rb = vec.length(b - r)
+        wb = (b - r) / jnp.maximum(rb, 1e-30)
+        far = rho < 0.5 * rb
+        delta_b = jnp.arcsin(jnp.clip(rho / jnp.maximum(rb, 1e-30), 0.0, 1.0))
+    H = wa * E.eta_a + wb * E.eta_b
+    e = E.eta_a * alpha + E.eta_b * delta_b  # bounds |H(s) - H(r)| over the frustum
+    Hy = jnp.abs(H.y)
+    Hxz = jnp.sqrt(H.x * H.x + H.z * H.z)
+    steady = Hy > 2.0 * e
+    sHy = jnp.where(steady, H.y, 1.0)
+    gsx, gsz = -H.x / sHy, -H.z / sHy  # the slope the law asks for at r
+    dg = e * (Hy + Hxz) / jnp.maximum(Hy * (Hy - e), 1e-30)
+    dist = jnp.sqrt((gsx - gx) ** 2 + (gsz - gz) ** 2)
+    slack = 1e-3 * (1.0 + jnp.sqrt(gsx * gsx + gsz * gsz))
+    meet = dist <= K * rh + dg + slack
+    return E.ok & ~(sure & far & steady & ~meet)
+
+
 def _same(c: Vec3, s: Vec3, p: Vec3):
     """s and p are one surface point (float32 rounding of a root seen from c)."""
     return vec.length(s - p) <= 1e-4 * (1.0 + vec.length(s - c))
@@ -143,8 +242,8 @@ def _centre(scene: Scene, pixel, c: Vec3, b, refract, b_dir: bool):
 
 def _more(scene: Scene, pixel, c: Vec3, b, refract, b_dir: bool, ok0, s0: Vec3):
     """The solves from the other 8 points of a 3 x 3 grid over the pixel (its centre is
-    `_centre`'s): (ok [8], points [8]), each root that is not the centre's (`ok0`, `s0`) nor
-    an earlier seed's marked once."""
+    `_centre`'s): (ok [EXTRA], points [EXTRA]): the first EXTRA roots, in seed order, that
+    are neither the centre's (`ok0`, `s0`) nor an earlier seed's."""
     t = jnp.asarray([1.0 / 6.0, 0.5, 5.0 / 6.0], scene.camera.origin.dtype)
     su, sv = jnp.repeat(t, 3), jnp.tile(t, 3)
     keep = jnp.asarray([0, 1, 2, 3, 5, 6, 7, 8])  # all but the centre (index 4)
@@ -154,18 +253,28 @@ def _more(scene: Scene, pixel, c: Vec3, b, refract, b_dir: bool, ok0, s0: Vec3):
     s = jax.tree.map(lambda a, q: jnp.concatenate([a[None], q]), s0, sm)
     same = jax.vmap(lambda a: jax.vmap(lambda q: _same(c, a, q))(s))(s)  # [9, 9]
     earlier = jnp.tril(jnp.ones((SEEDS, SEEDS), bool), -1)
-    return (ok & ~jnp.any(same & earlier & ok[None, :], axis=1))[1:], sm
+    left = (ok & ~jnp.any(same & earlier & ok[None, :], axis=1))[1:]
+    oks, pts = [], []
+    for _ in range(EXTRA):  # the first EXTRA new roots, in seed order
+        i = jnp.argmax(left)
+        oks.append(left[i])
+        pts.append(jax.tree.map(lambda a: a[i], sm))
+        left = left.at[i].set(False)
+    return jnp.stack(oks), jax.tree.map(lambda *a: jnp.stack(a), *pts)
 
 
 def roots(scene: Scene, pixel, c: Vec3, b, refract, exists, b_dir: bool = False):
     """F_pixel(b): the roots of c -> s -> b whose direction from c falls in `pixel`:
-    (ok [SEEDS], s [SEEDS] stopped points), each distinct root marked once. Newton from the
+    (ok [1 + EXTRA], s [1 + EXTRA] stopped points), each distinct root marked once; none
+    where the pixel cannot hold a root (`_may_hold`). Newton from the
     pixel centre's seed; where its root lies in the pixel or a neighbour (the pixel may hold
     a second root: the pairs that merge at a fold of the glint), Newton from the other
     points of a 3 x 3 grid over the pixel as well. A deterministic function of (pixel, b):
     the glint technique counts the roots it returns, the emitter hit takes its share of
     exactly those paths (`emitter_share`)."""
+    may = _may_hold(scene, pixel, c, b, refract, b_dir)
     ok0, s0, more = _centre(scene, pixel, c, b, refract, b_dir)
+    ok0, more = ok0 & may, more & may
     okm, sm = _more(scene, pixel, c, b, refract, b_dir, ok0, s0)
     ok = jnp.concatenate([ok0[None], okm & more])
     s = jax.tree.map(lambda a, q: jnp.concatenate([a[None], q]), s0, sm)
@@ -249,8 +358,7 @@ def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, ref
     b = e.d if b_dir else e.p
     # the root again, from itself (no iteration: the polish step and its implicit-function
     # derivatives, so gradients flow through it)
-    s = manifold.solve_near(water, c, b, x, z, refract=refract, b_is_direction=b_dir,
-                            iters=0).s
+    s = manifold.polished(water, c, b, x, z, refract=refract, b_is_direction=b_dir)
     w = vec.normalize(s - c)
     _, imp, _ = camera_importance(scene, w)
     # ---- visibility: c -> s (nothing before the root), s -> y ----
@@ -316,13 +424,14 @@ def light_uniforms(key, N: int, samples: int, dt):
 
 
 def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES):
-    """The glint technique for every camera path (its pixel [N]): [N, C] per path, the
-    film's mean over its pixel's samples as every camera technique. Every path samples
-    `samples` light points and runs its pixel's centre solve for each (`roots`; the other
-    seeds' solves for the few points whose centre root lands in or beside the pixel, a
-    work queue); only the roots in the pixel (a few per cent of the points in a pool)
-    trace the shadow rays and evaluate the Jacobians, as work queues
-    (`_queue.masked_map`); the path's value is the mean over its points."""
+    """The glint technique for every camera path (its pixel [N]): ([N, C] per path, the
+    film's mean over its pixel's samples as every camera technique; the number of
+    non-finite values, zeroed). Every path samples `samples` light points and, where its
+    pixel may hold a root of a point (`_may_hold`), runs the pixel centre's solve (`roots`;
+    the other seeds' solves for the few points whose centre root lands in or beside the
+    pixel); only the roots in the pixel trace the shadow rays and evaluate the Jacobians.
+    Each stage is a work queue (`_queue.masked_map`); the path's value is the mean over
+    its points."""
     N = pixel.shape[0]
     K = N * samples
     dt = scene.camera.origin.dtype
@@ -332,33 +441,36 @@ def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES):
     e = jax.vmap(lambda uu: lights.sample_emission(scene, uu))(u)
     pix = jnp.repeat(pixel, samples)  # item k: path k // samples
     out = jnp.zeros((K, scene.channels), dt)
+    bad = jnp.zeros((), jnp.int32)
     item_of = jnp.arange(K, dtype=jnp.int32)
     zero = jnp.zeros((), dt)
     for b_dir in _ends(scene):
         use = exists & ((e.infinite & e.delta) if b_dir else ~e.infinite)
         b = e.d if b_dir else e.p
-        # F_pixel(y) (`roots`): the centre's solve for every item; the other seeds' for the
-        # few whose centre root lands in or beside the pixel (a work queue)
-        ok0, s0, more = jax.vmap(lambda p, bb: _centre(scene, p, c, bb, refract, b_dir))(pix, b)
-        ok0, more = ok0 & use, more & use
+        # F_pixel(y) (`roots`): the centre's solve for the items whose pixel may hold a
+        # root (`_may_hold`: 2.6 % of them at 256 x 256 on the default pool), the other
+        # seeds' for the few whose centre root lands in or beside the pixel (work queues)
+        may = jax.vmap(lambda p, bb: _may_hold(scene, p, c, bb, refract, b_dir))(pix, b) & use
+        ok0, s0, more = masked_map(lambda p, bb: _centre(scene, p, c, bb, refract, b_dir), may,
+                                   (pix, b), (False, Vec3(zero, zero, zero), False), 16)
         okm, sm = masked_map(lambda p, bb, o, q: _more(scene, p, c, bb, refract, b_dir, o, q),
                              more, (pix, b, ok0, s0), (False, Vec3(zero, zero, zero)), 128)
 
-        def centre_item(k, b_dir=b_dir, s0=s0):
+        # the contributions of every root found, item (seed, k): the centre's roots (a few
+        # per cent of the light points hold one), the other seeds' (far fewer), in one
+        # queue of rounds of K / 16 items, added per light point
+        found = jnp.concatenate([ok0[None], okm.T], axis=0)  # [1 + EXTRA, K]
+        xs = jnp.concatenate([s0.x[None], sm.x.T], axis=0)
+        zs = jnp.concatenate([s0.z[None], sm.z.T], axis=0)
+        ks = jnp.broadcast_to(item_of, (1 + EXTRA, K))
+
+        def item(x, z, k, b_dir=b_dir):
             ek = jax.tree.map(lambda a: a[k], e)
-            return _contribution(scene, cfg, ek, s0.x[k], s0.z[k], refract, b_dir, samples)
+            return _contribution(scene, cfg, ek, x, z, refract, b_dir, samples)
 
-        def more_item(i, b_dir=b_dir, x=sm.x.reshape(-1), z=sm.z.reshape(-1)):
-            ek = jax.tree.map(lambda a: a[i // (SEEDS - 1)], e)  # item i: (k, seed)
-            return _contribution(scene, cfg, ek, x[i], z[i], refract, b_dir, samples)
-
-        # a few per cent of the light points hold a root at the pixel's centre (rounds of
-        # K / 16 items), far fewer another one (rounds of K / 128)
-        out = out + masked_map(centre_item, ok0, (item_of,), 0.0, 16)
-        extra = masked_map(more_item, okm.reshape(-1), (jnp.arange(okm.size, dtype=jnp.int32),),
-                           0.0, 128 * (SEEDS - 1))
-        out = out + extra.reshape(K, SEEDS - 1, -1).sum(axis=1)
-    return out.reshape(N, samples, -1).mean(axis=1)
+        val, n_bad = masked_map(item, found, (xs, zs, ks), 0.0, 16 * (1 + EXTRA), summed=True)
+        out, bad = out + val, bad + n_bad
+    return out.reshape(N, samples, -1).mean(axis=1), bad
 
 
 def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, escaped, j, pixel):

@@ -176,11 +176,11 @@ def index_factor(cfg: RenderConfig) -> int:
     subpath (emitter hits, manifold NEE, photons and gather points queue at most D items
     per path), the trace's two lanes per path, vertex connection's techniques (next-event
     estimation D - 1, light tracing D, the connections' (D - 1) (D - 2) / 2 (s, t) pairs,
-    one queue), the glints' light samples per path times their extra seeds."""
+    one queue), the glints' light samples per path times the roots kept per sample."""
     D = cfg.max_depth
     f = max(2, D + 1, connect.queue_rows(cfg))
     if cfg.glints:
-        f = max(f, glints.SAMPLES * (glints.SEEDS - 1))
+        f = max(f, glints.SAMPLES * (1 + glints.EXTRA))
     return f
 
 
@@ -394,8 +394,9 @@ def glint_connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassSta
     if not glints.applies(scene):  # no water, or no light a glint can show
         return st
     key = jax.random.fold_in(jax.random.fold_in(st.key, glints.STREAM), st.chunk)
-    val = glints.glints(scene, cfg, _path_pixels(scene, cfg, st), key)
-    return _add(st, {Technique("glint", 1, 1): val})
+    val, bad = glints.glints(scene, cfg, _path_pixels(scene, cfg, st), key)
+    st = _add(st, {Technique("glint", 1, 1): val})
+    return dataclasses.replace(st, bad=st.bad + bad)
 
 
 # ---- vertex connection: [s = 1] next-event estimation at camera vertices, [t = 1] light

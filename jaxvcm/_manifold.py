@@ -721,15 +721,28 @@ def solve_near(water: Water, a: Vec3, b: Vec3, x, z, *, refract,
         return jnp.clip(x + f * dx, fp[0], fp[1]), jnp.clip(z + f * dz, fp[2], fp[3])
 
     x, z = jax.lax.fori_loop(0, iters, body, (sg(jnp.asarray(x, dt)), sg(jnp.asarray(z, dt))))
-    eta_a, eta_b = _live_etas(water, E, refract)
-    xp, zp = _polish(water, x, z, a, b, eta_a, eta_b, b_is_direction)
-    h, _, _ = water_height(water, xp, zp)
+    p = polished(water, a, b, x, z, refract=refract, b_is_direction=b_is_direction, E=E)
+    xp, h, zp = p.x, p.y, p.z
     xs_, zs_ = sg(xp), sg(zp)
     c, _, _ = _c_and_jac(w0, xs_, zs_, a0, b0, E.eta_a, E.eta_b, b_is_direction)
     ok, H_len, s = _checks(w0, xs_, zs_, a0, b0, E, refract, b_is_direction)
     res = jnp.sqrt(c[0] * c[0] + c[1] * c[1])
     tol = _tol(w0, s, a0, b0, H_len, E.eta_a, E.eta_b, b_is_direction, eps)
     return Near(Vec3(xp, h, zp), E.ok & ok & (res <= tol), res)
+
+
+def polished(water: Water, a: Vec3, b: Vec3, x, z, *, refract, b_is_direction: bool = False,
+             E: _Ends | None = None) -> Vec3:
+    """The surface point one Newton step from a converged root (x, z) (stopped values), with
+    its implicit-function derivatives (`_root`): a root the search found, made
+    differentiable with respect to the water, a and b. Scalars; vmap over connections."""
+    if E is None:
+        sg = jax.lax.stop_gradient
+        E = _ends(sg(water), sg(a), sg(b), refract, b_is_direction)
+    eta_a, eta_b = _live_etas(water, E, refract)
+    xp, zp = _polish(water, x, z, a, b, eta_a, eta_b, b_is_direction)
+    h, _, _ = water_height(water, xp, zp)
+    return Vec3(xp, h, zp)
 
 
 def flat_seed(water: Water, a: Vec3, b: Vec3, b_is_direction: bool = False):

@@ -297,8 +297,7 @@ def manifold_nee(scene: Scene, cfg: RenderConfig, cam: PathEnds, parts, etas, ke
             x0, z0 = jnp.where(ok, xs[i, n], z.p.x), jnp.where(ok, zs_[i, n], z.p.z)
             # the root again from itself: the polish step and its implicit-function
             # derivatives
-            s = manifold.solve_near(water, z.p, y, x0, z0, refract=True, b_is_direction=b_dir,
-                                    iters=0).s
+            s = manifold.polished(water, z.p, y, x0, z0, refract=True, b_is_direction=b_dir)
             # ---- visibility: a -> s (under the water), s -> the light (above it) ----
             w_a, d_as, oa, wd, tmax = _segment(z.p, z.n, z.medium, s)
             vis = geometry.unoccluded(scene, oa, wd, tmax, cfg.march_steps)

@@ -332,9 +332,9 @@ def test_index_factor_bounds_the_traced_arrays():
     n = 128 * 128
     got = _largest_dim(jp.jaxpr)
     # vertex connection's queue: next-event estimation 7 + light tracing 8 + 21 (s, t >= 2)
-    # pairs = 36 techniques of N items; the glints' queue of the roots beyond the pixel
-    # centre's: 8 light points x 8 more seeds = 64 items per path, the largest index space
-    assert index_factor(cfg) == 64
+    # pairs = 36 techniques of N items, the largest index space; the glints' queue of the
+    # roots: 8 light points x (the centre's + 2 more) = 24 items per path
+    assert index_factor(cfg) == 36
     assert 20 * n < got <= index_factor(cfg) * n + 1, (got / n, index_factor(cfg))
 
 
