@@ -176,9 +176,9 @@ def test_flat_water_glint_closed_form(view):
 
 
 # ---------------------------------------------------------------- light points
-@pytest.mark.parametrize("samples", [1, 6, 8])
+@pytest.mark.parametrize("samples", [1, 6, 8, 16])
 def test_a_path_s_light_points_are_stratified_and_uniform_together(samples):
-    # gx x gy strata over the light's two position uniforms (8 -> 2 x 4, 6 -> 2 x 3): every
+    # gx x gy strata over the light's two position uniforms (16 -> 4 x 4, 8 -> 2 x 4, 6 -> 2 x 3): every
     # path has one point in each stratum, uniform within it, so the n points together are
     # uniform on the unit square (each stratum has probability 1/n, and the mean of the n
     # values f / p is unbiased): the pooled mean of a uniform is 1/2 with standard error
@@ -186,6 +186,7 @@ def test_a_path_s_light_points_are_stratified_and_uniform_together(samples):
     # untouched, i.i.d. uniform per point
     gx, gy = glints.strata(samples)
     assert gx * gy == samples and gx <= gy and (samples != 8 or (gx, gy) == (2, 4))
+    assert samples != 16 or (gx, gy) == (4, 4)
     N = 4096
     u = np.asarray(glints.light_uniforms(jax.random.key(1), N, samples, jnp.float32))
     u = u.reshape(N, samples, 5)
