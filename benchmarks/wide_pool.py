@@ -119,8 +119,9 @@ def markdown(res: dict) -> str:
              "cannot be hit, and no connection passes the surface), so the per-pass image "
              "means are heavy-tailed and their SE is tens of percent; with it, every floor "
              "vertex of a camera path connects to the sun through the surface, and the "
-             "round trips are ordinary scattering between those vertices. What remains "
-             "for vcm+mnee is the merging's finite-radius bias: the default radius is a "
-             "fraction of the 120 m pool's bounding radius (docs/design/manifold.md).")
+             "round trips are ordinary scattering between those vertices. The default "
+             "merging radius is a fraction of the view radius (the ~10 cm of floor the "
+             "camera sees), raised to the 2.2 cm the float32 hash grid resolves at the "
+             "pool's 120 m extent (docs/design/merging.md).")
     L.append("")
     return "\n".join(L) + "\n"

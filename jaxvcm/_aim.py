@@ -21,11 +21,11 @@ stay unbiased.
 The merge radius of the first pass follows the pixel footprint at the same vertices:
 r_1 = `radius_pixels` x the median over paths of (distance from the pinhole along the
 path) x (one pixel's angle, 2 tan(fov / 2) / H), returned as the fraction of the scene's
-bounding radius that `RenderConfig.radius` takes (the progressive schedule is unchanged),
-but not below what the hash grid resolves in the scene's float dtype at the scene's
-extent for `horizon` (10^4) passes of the schedule (`_merge.precise_radius`: a 120 m pool
-in float32 takes 4.7 cm instead of its 1.8 cm footprint; a float64 scene takes the
-footprint).
+view radius (`Scene.view_radius`) that `RenderConfig.radius` takes (the progressive
+schedule is unchanged), but not below what the hash grid resolves in the scene's float
+dtype at the scene's extent for `horizon` (10^4) passes of the schedule
+(`_merge.precise_radius`: a 120 m pool in float32 takes 4.7 cm instead of its 1.8 cm
+footprint; a float64 scene takes the footprint).
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ import numpy as np
 from . import _integrator as integ
 from . import _merge as merge
 from . import _subpath as subpath
-from ._config import RenderConfig
-from ._scene import LIGHT_SKY, LIGHT_SUN, Scene, bounding_sphere
+from ._config import MAX_RADIUS, RenderConfig
+from ._scene import LIGHT_SKY, LIGHT_SUN, Scene
 
 DEFAULT_GRID = 64
 DEFAULT_RADIUS_PIXELS = 1.0
@@ -58,7 +58,7 @@ class ViewGuide(NamedTuple):
 
     aim_map: np.ndarray  # [G, G] weights of the rectangle's cells (rows z, columns x)
     aim_rect: np.ndarray  # [4] x0, x1, z0, z1 of the water's plane the map covers
-    radius: float  # first-pass merge radius, as a fraction of the bounding radius
+    radius: float  # first-pass merge radius, as a fraction of the view radius
     footprint: float  # median pixel footprint (m) at the first non-delta camera vertex
     under_water: int  # pilot paths whose first non-delta vertex lies under the footprint
     paths: int  # pilot paths
@@ -126,7 +126,7 @@ def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
     water; the surface points that cast caustics there, widened by what the waves' slopes,
     a pixel's footprint and the merge radius reach, give the map's rectangle and its
     cells. The radius follows the median pixel footprint at those vertices
-    (`radius_pixels` pixels), as a fraction of the scene's bounding radius, and is at
+    (`radius_pixels` pixels), as a fraction of the scene's view radius, and is at
     least what the hash grid resolves in the scene's float dtype for `horizon` passes of
     the schedule with `alpha`. `key`: the pilot's key (default: a fixed key no pass
     uses)."""
@@ -145,14 +145,14 @@ def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
     cam = scene.camera
     pixel = 2.0 * float(cam.tan_half_fov) / cam.height
     fp = float(np.median(dist[found])) * pixel if found.any() else float("nan")
-    _, rb = bounding_sphere(scene)
-    r = radius_pixels * fp / float(rb) if math.isfinite(fp) else RenderConfig.radius
+    rb = float(scene.view_radius)  # the reference length of `RenderConfig.radius`
+    r = radius_pixels * fp / rb if math.isfinite(fp) else RenderConfig.radius
     # not below what the hash grid resolves at the scene's extent for `horizon` passes of
     # the progressive schedule (`_merge.pass_radius`'s floor; the grid's radius shrinks as
     # i^((alpha - 1) / 3)): in float32 a 120 m pool resolves >= 2.2 cm
     r_min, _ = merge.precise_radius(scene)
-    floor = r_min * 1.01 * horizon ** ((1.0 - alpha) / 3.0) / float(rb)
-    r = min(max(r, floor, 1e-6), 1.0)
+    floor = r_min * 1.01 * horizon ** ((1.0 - alpha) / 3.0) / rb
+    r = min(max(r, floor, 1e-6), MAX_RADIUS)
     if not under.any():
         rect, aim_map = (fx0, fx1, fz0, fz1), np.ones((G, G))
     else:
@@ -161,7 +161,7 @@ def view_guide(scene: Scene, key=None, *, spp: int = 4, max_depth: int = 8,
         cast = _casters(scene, p[under], level)
         # a pixel's footprint there, plus the first pass's merge radius: gather points
         # reach photons that far beyond what they see
-        pix = pixel * float(np.median(dist[under])) + r * float(rb)
+        pix = pixel * float(np.median(dist[under])) + r * rb
         x0 = max(fx0, min(c[:, 0].min() - w - pix for c, w in cast))
         x1 = min(fx1, max(c[:, 0].max() + w + pix for c, w in cast))
         z0 = max(fz0, min(c[:, 1].min() - w - pix for c, w in cast))

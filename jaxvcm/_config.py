@@ -74,6 +74,9 @@ TECHNIQUES = {
 MIS_HEURISTICS = ("balance", "power")
 MIS_FORMS = ("explicit", "recursive")
 MAX_DEPTH = 64  # path segments; subpaths are [depth, paths] arrays, so memory grows with it
+# the largest first merging radius, as a fraction of the view radius: a blur up to 100x the
+# size of what the camera sees (a close-up of a small patch may still blur over centimetres)
+MAX_RADIUS = 100.0
 
 
 def _positive_int(name: str, v) -> None:
@@ -148,8 +151,10 @@ class RenderConfig:
     spp:         camera paths per pixel per pass; a pass's width x height x spp paths are at
                  most 2^31 - 1 (int32 path numbers: 7 spp at 16384 x 16384; more samples
                  come from more passes), refused before tracing otherwise.
-    radius:      merging radius of the first pass, as a fraction of the scene's bounding
-                 radius; pass i uses r_1 i^((alpha - 1) / 2) (progressive photon mapping).
+    radius:      merging radius of the first pass, as a fraction of the scene's view
+                 radius (`Scene.view_radius`: half the diagonal of the box of the surfaces
+                 the camera sees); pass i uses r_1 i^((alpha - 1) / 2) (progressive
+                 photon mapping).
     alpha:       radius reduction exponent (0 < alpha < 1).
     mis_form:    "explicit" (log-space sums over all techniques, evaluated at each join
                  from per-subpath partial sums) or "recursive" (the tech report's
@@ -213,9 +218,9 @@ class RenderConfig:
         if self.max_depth > MAX_DEPTH:
             raise ValueError(f"config.max_depth: must be <= {MAX_DEPTH} (subpaths are stored "
                              f"as [depth, paths] arrays), got {self.max_depth!r}")
-        if not (isinstance(self.radius, (int, float)) and 0 < self.radius <= 1):
-            raise ValueError(f"config.radius: must lie in (0, 1] (a fraction of the scene's "
-                             f"bounding radius), got {self.radius!r}")
+        if not (isinstance(self.radius, (int, float)) and 0 < self.radius <= MAX_RADIUS):
+            raise ValueError(f"config.radius: must lie in (0, {MAX_RADIUS:g}] (a fraction of "
+                             f"the scene's view radius), got {self.radius!r}")
         if not (isinstance(self.alpha, (int, float)) and 0 < self.alpha < 1):
             raise ValueError(f"config.alpha: must lie in (0, 1), got {self.alpha!r}")
         if not isinstance(self.glints, bool):

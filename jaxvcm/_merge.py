@@ -35,7 +35,7 @@ from . import _vec as vec
 from ._config import RenderConfig
 from ._mis import mis_form
 from ._path import both_dispersed, log_n_light_tracing, reverse_pdf
-from ._scene import Scene, bounding_sphere
+from ._scene import Scene
 from ._subpath import PathEnds
 from ._vec import Vec3
 
@@ -52,14 +52,15 @@ def pass_radius(cfg: RenderConfig, scene: Scene, pass_index) -> Radii:
         surfaces  r_i = r_1 i^((alpha - 1) / 2)   (2-D density estimate),
         medium    r_i = r_1 i^((alpha - 1) / 3)   (3-D: the variance of a sphere kernel
                   grows as r^-3, so the radius shrinks more slowly for the same alpha),
-    r_1 = `cfg.radius` times the scene's bounding radius, neither below the smallest radius
+    r_1 = `cfg.radius` times the scene's view radius (`Scene.view_radius`: the size of what
+    the camera sees, `_io._view`), neither below the smallest radius
     the hash grid resolves in the scene's float dtype at the scene's extent
     (`resolvable_radius`): a schedule that reaches it stays there (the render goes on, its
     merging bias no longer shrinks; the host driver says so once, `radius_floor_note`). The
     pass index alone drives the schedule, so resumed and sharded renders agree."""
-    _, rb = bounding_sphere(scene)
-    i = jnp.asarray(pass_index, rb.dtype) + 1.0
-    r1 = cfg.radius * rb
+    rv = scene.view_radius
+    i = jnp.asarray(pass_index, rv.dtype) + 1.0
+    r1 = cfg.radius * rv
     floor = FLOOR_MARGIN * resolvable_radius(scene)
     return Radii(jax.lax.stop_gradient(jnp.maximum(r1 * i ** ((cfg.alpha - 1.0) / 2.0), floor)),
                  jax.lax.stop_gradient(jnp.maximum(r1 * i ** ((cfg.alpha - 1.0) / 3.0), floor)))
@@ -100,9 +101,7 @@ def radius_floor_note(scene: Scene, cfg: RenderConfig, passes: int) -> str | Non
     if cfg.techniques.merging is None or passes < 1:
         return None
     r_min, span = precise_radius(scene)
-    lo, hi = (np.asarray(b, np.float64) for b in np.asarray(scene.bounds))
-    rb = 0.5 * float(np.linalg.norm(hi - lo))
-    r1 = cfg.radius * rb
+    r1 = cfg.radius * float(scene.view_radius)
     r = r1 * float(passes) ** ((cfg.alpha - 1.0) / 2.0)  # the last pass's surface radius
     if r > FLOOR_MARGIN * r_min:
         return None

@@ -172,8 +172,9 @@ class Scene(eqx.Module):
     water: Water
     lights: Lights
     bounds: Float[Array, "2 3"]  # axis-aligned box of the shapes and the water (not the
-    #                                camera, not point lights): the infinite lights' disk and
-    #                                the merging radius's reference length
+    #                                camera, not point lights): the infinite lights' disk
+    view_radius: Float[Array, ""]  # half the diagonal of the box of the surfaces the camera
+    #                                sees (`_io._view`): the merging radius's reference length
     name: str = eqx.field(static=True, default="scene")
 
     @property

@@ -38,7 +38,7 @@ import jaxvcm
 
 from . import _fit, _hosts, _io, _signals
 from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
-from ._config import ALGORITHMS, MAX_DEPTH, RenderConfig
+from ._config import ALGORITHMS, MAX_DEPTH, MAX_RADIUS, RenderConfig
 from ._devices import resolve_devices
 from ._memory import parse_bytes
 from ._fit import WATER_FIELDS
@@ -146,9 +146,10 @@ def _parser() -> argparse.ArgumentParser:
                         "the water through the surface, by a Newton solve per vertex (pt, "
                         "bdpt, bpm, vcm; off by default: on the default pool it lowers the "
                         "typical pixel's error but costs 1.8x per pass, docs/benchmarks.md)")
-    r.add_argument("--radius", type=_finite_float_in(1e-9, 1.0), default=None, metavar="R",
-                   help="first-pass merging radius as a fraction of the scene's bounding "
-                        "radius (ppm/bpm/vcm; default 0.005)")
+    r.add_argument("--radius", type=_finite_float_in(1e-9, MAX_RADIUS), default=None,
+                   metavar="R", help="first-pass merging radius as a fraction of the scene's "
+                                     "view radius, the size of what the camera sees "
+                                     "(ppm/bpm/vcm; default 0.005)")
     g = r.add_mutually_exclusive_group()
     g.add_argument("--passes", type=_pos_int(), metavar="N",
                    help="number of passes (1 sample per pixel each)")
@@ -354,7 +355,7 @@ def _cmd_render(a) -> int:
             x0, x1, z0, z1 = guide.aim_rect
             print(f"{PROG}: aimed at {x1 - x0:.3g} m x {z1 - z0:.3g} m of the water "
                   f"({guide.under_water} of {guide.paths} pilot paths under it); radius "
-                  f"{config.radius:.3g} of the bounding radius ({guide.footprint:.3g} m "
+                  f"{config.radius:.3g} of the view radius ({guide.footprint:.3g} m "
                   f"pixel footprint)", file=sys.stderr)
     lead = _hosts.is_lead()
     if lead:
@@ -444,6 +445,8 @@ def describe(scene) -> str:
         lines.append(f"  light {j}: {name}, {what} {_fmt_vec(rad[j])}{extra}")
     b = np.asarray(scene.bounds, np.float64)
     lines.append(f"bounds:    {_fmt_vec(b[0])} .. {_fmt_vec(b[1])}")
+    lines.append(f"view:      radius {float(scene.view_radius):.4g} m (the merging radius's "
+                 f"reference length)")
     return "\n".join(lines)
 
 

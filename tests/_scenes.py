@@ -39,6 +39,12 @@ def shipped_doc(name: str, width: int | None = None, height: int | None = None, 
     return d
 
 
+def radius_fraction(scene, metres: float) -> float:
+    """`RenderConfig.radius` for a first merging radius of `metres` in `scene` (the config
+    takes a fraction of the scene's view radius, the size of what its camera sees)."""
+    return metres / float(scene.view_radius)
+
+
 def shipped_scene(name: str, width: int | None = None, height: int | None = None, **over):
     """`shipped_doc(name, width, height, **over)` loaded (the scene's name: `name`)."""
     return jaxvcm.scene_from_dict(shipped_doc(name, width, height, **over), name)

@@ -24,6 +24,7 @@ from ._scene_sections import (
 )
 from ._schema import DOCUMENT, MAX_BASES, REL_SIZE
 from ._toml import SceneError, _Ctx, read_toml
+from ._view import view_radius
 
 __all__ = ["SceneError", "load_scene", "read_scene_doc", "scene_from_dict"]
 
@@ -105,9 +106,11 @@ def scene_from_dict(doc: dict, src: str = "<scene>", *, width=None, height=None,
             _check_sizes(ctx, parts, _box(groups), groups)
             bounds = _box(_geometry(groups))
             power = _light_power(parts, bounds)
+            view = view_radius(cam, parts, water, bounds)
         except FloatingPointError as e:  # pragma: no cover (no known case)
             ctx.fail("scene", f"a derived value is out of range ({e})")
-    return _check_finite(ctx, _to_scene(cam, parts, water, bounds, power, name, dtype))
+    return _check_finite(ctx, _to_scene(cam, parts, water, bounds, view, power, name,
+                                          dtype))
 
 
 def _check_sizes(ctx: _Ctx, parts: _Parts, bounds: np.ndarray, groups) -> None:
@@ -162,9 +165,9 @@ def _bound_points(pos: np.ndarray, parts: _Parts, water: dict) -> list:
 def _geometry(groups) -> list:
     """The groups of `_bound_points` that are surfaces light can reach (shapes, the water),
     without the camera and the point lights: the scene's `bounds`. The sun's, the sky's and
-    the background's photons start on the disk of this box's bounding sphere, and the
-    merging radius is a fraction of its radius, so neither depends on where the camera
-    stands (a camera further back would thin the photons and widen the radius). Unbiased:
+    the background's photons start on the disk of this box's bounding sphere, so their
+    density does not depend on where the camera stands (a camera further back would thin
+    the photons); the merging radius's length is the view's (`_view`). Unbiased:
     every line that meets a surface passes through the sphere around all surfaces, so the
     disk covers every photon that can land anywhere; light that meets no surface reaches
     no camera vertex and no camera (the sun and point lights cannot be hit, and an escaped
@@ -203,7 +206,8 @@ def _light_power(parts: _Parts, bounds: np.ndarray) -> list:
     return power
 
 
-def _to_scene(cam: dict, p: _Parts, water: dict, bounds, power, name: str, dtype) -> Scene:
+def _to_scene(cam: dict, p: _Parts, water: dict, bounds, view, power, name: str,
+              dtype) -> Scene:
     """The NumPy float64 parts as the `Scene` pytree (floats in `dtype`, indices int32)."""
     # converted in NumPy and transferred with device_put: jnp.asarray compiles a small
     # copy/conversion program per shape (20-40 ms each, in every process)
@@ -230,4 +234,4 @@ def _to_scene(cam: dict, p: _Parts, water: dict, bounds, power, name: str, dtype
     lights = Lights(tuple(p.l_kind), tuple(p.l_shape), A(np.array(p.l_rad)), arr3(p.l_dir),
                     A(power), arr3(p.l_pos), aim if aimed else (),
                     A(np.ones((1, 1))) if aimed else None, A(w["fp"]) if aimed else None)
-    return Scene(camera, materials, rects, spheres, wat, lights, A(bounds), name)
+    return Scene(camera, materials, rects, spheres, wat, lights, A(bounds), A(view), name)

@@ -48,9 +48,9 @@ def _check(scene, cfg, want, passes=8):
     assert np.all(z < 4.0), f"mean {m} vs {want}: {z} standard errors"
 
 
-# radius 0.01 of the scene's bounding radius: merging blurs over r / R = 1.7 % of the
-# sphere's radius (at radius 0.05, r / R = 8.7 %, vcm and bpm measured 5-6 % high on this
-# sphere and exact on a flat plane: the consistent estimator's bias on curved surfaces,
+# radius 0.01 of the scene's view radius (0.86 m): merging blurs over r / R = 0.86 % of the
+# sphere's radius (at 5 % of the bounding radius, r / R = 8.7 %, vcm and bpm measured 5-6 %
+# high on this sphere and exact on a flat plane: the consistent estimator's bias on curved surfaces,
 # docs/design/pass.md, "Materials and lights")
 @pytest.mark.parametrize("alg", ["pt", "vcm"])  # vcm holds every bdpt technique
 def test_background_lights_a_diffuse_sphere_to_albedo_times_radiance(alg):

@@ -103,7 +103,9 @@ def test_merging_renders_refracted_sun_seen_from_above(alg):
 def test_merge_overflow_flag_and_host_rerun_is_exact():
     sc = scene(8, 8)
     key = jax.random.key(5)
-    small = RenderConfig(algorithm="ppm", max_depth=4, radius=0.2).tuned(merge_capacity=2)
+    # a 30 cm first radius (0.92 of the view radius here)
+    small = RenderConfig(algorithm="ppm", max_depth=4, radius=S.radius_fraction(sc, 0.3)
+                         ).tuned(merge_capacity=2)
     img_s, diag_s = _render_pass_jit(sc, key, small, 0)
     assert bool(diag_s.merge_overflow)  # far more than 2 candidates per gather point
     img_h, diag_h, used = render_pass_host(sc, key, small, 0)
@@ -129,7 +131,8 @@ def test_photon_overflow_flag_and_host_rerun_is_exact():
     # for bit (same candidates in the same order: nothing is silently dropped)
     sc = scene(8, 8)
     key = jax.random.key(5)
-    small = RenderConfig(algorithm="vcm", max_depth=4, radius=0.2).tuned(photon_capacity=2)
+    small = RenderConfig(algorithm="vcm", max_depth=4, radius=S.radius_fraction(sc, 0.3)
+                         ).tuned(photon_capacity=2)
     img_s, diag_s = _render_pass_jit(sc, key, small, 0)
     n = int(diag_s.merge_photons)  # the pass counts every valid photon, kept or not
     assert n > 2 and bool(diag_s.photon_overflow) and bool(diag_s.merge_overflow)
@@ -151,7 +154,7 @@ def test_photon_overflow_flag_and_host_rerun_is_exact():
 @pytest.mark.parametrize("alg", ["ppm", "vcm"])
 @pytest.mark.parametrize("r", [1e-6, 0.5])
 def test_merging_extreme_radii_are_finite(r, alg):
-    # 1e-6 of the bounding radius (2.8 um) is below what a float32 grid resolves at the
+    # 1e-6 of the view radius (1.6 um) is below what a float32 grid resolves at the
     # pool's scale (tests/merge/test_precise.py: refused in one line): a float64 scene renders it
     sc = jaxvcm.load_scene("scenes/pool_sun.toml", width=8, height=8,
                            dtype=jnp.float64 if r < 1e-4 else jnp.float32)
@@ -164,7 +167,7 @@ def test_merging_extreme_radii_are_finite(r, alg):
 def test_sphere_furnace_merging_per_path_length(alg):
     # Emitting diffuse sphere (test_transport): each path length k carries Le a^(k-1). With
     # merging the photon density on the sphere is uniform, so the disk kernel's bias is
-    # only the curvature term O((r/R)^2) ~ 1e-4 for r = 0.01 R_bound; the sum over all
+    # only the curvature term O((r/R)^2) <= 1e-4 for r = 0.01 R_v (R_v <= R); the sum over all
     # connection and merging techniques of each k must reproduce the analytic value.
     # Standard errors of the image means over the 8 passes, asserted below 1.25 % of the
     # value (a 5 % error is then 4 SE away): measured k = 1 0 (bpm: the emitter seen
@@ -201,13 +204,12 @@ def test_sphere_furnace_merging_per_path_length(alg):
 @pytest.mark.parametrize("alpha", [0.5, 0.75, 0.9])
 def test_pass_radius_schedules_surface_and_medium(alpha):
     # r_i = r_1 i^((alpha-1)/2) on surfaces and r_1 i^((alpha-1)/3) in the medium, i =
-    # pass_index + 1, r_1 = radius * R_bound. At pass_index 999 (i = 1000) and alpha = 0.75:
-    # surface 1000^-0.125 = 0.4217, medium 1000^-0.0833 = 0.5623 (times r_1).
+    # pass_index + 1, r_1 = radius * the view radius. At pass_index 999 (i = 1000) and
+    # alpha = 0.75: surface 1000^-0.125 = 0.4217, medium 1000^-0.0833 = 0.5623 (times r_1).
     from jaxvcm._merge import pass_radius
-    from jaxvcm._scene import bounding_sphere
 
     sc = jaxvcm.load_scene("scenes/pool_sky.toml", width=8, height=8)
-    r1 = 0.01 * float(bounding_sphere(sc)[1])
+    r1 = 0.01 * float(sc.view_radius)
     cfg = RenderConfig(algorithm="vcm", radius=0.01, alpha=alpha)
     for i in (1, 2, 10, 1000):
         r = pass_radius(cfg, sc, i - 1)
@@ -316,9 +318,8 @@ def test_medium_furnace_with_medium_merging(alg):
     doc = _medium_furnace_doc(Le)
     sc = jaxvcm.scene_from_dict(doc)
     from jaxvcm._merge import pass_radius
-    from jaxvcm._scene import bounding_sphere
 
-    rb = float(bounding_sphere(sc)[1])
+    rb = float(sc.view_radius)  # the reference length of RenderConfig.radius
     D = 6
     r_1, r_want, P = _FURNACE_RUN[alg]
     cfg = RenderConfig(algorithm=alg, max_depth=D, rr_depth=100, radius=r_1 / rb, spp=64)
@@ -390,9 +391,8 @@ def test_merging_bias_shrinks_with_radius():
     h = 0.1
     sc = jaxvcm.scene_from_dict(_disk_light_scene(h, w=32))
     from jaxvcm._merge import pass_radius
-    from jaxvcm._scene import bounding_sphere
 
-    rb = float(bounding_sphere(sc)[1])
+    rb = float(sc.view_radius)  # the reference length of RenderConfig.radius
     E0 = _blurred_irradiance(h, 1e-4)
     biases = []
     # One compiled program for the three radii (the radius is static in the config): the

@@ -196,8 +196,8 @@ def test_recursive_render_equals_explicit(alg):
     # medium vertices) merging. Same scene, key and pass: every contribution is identical
     # except for its MIS weight, which the two forms compute to float32 rounding, so the
     # images agree to ~1e-6 relative (measured 1.5e-7 for both algorithms). At radius 0.1
-    # (of the bounding radius) merging changes the vcm image by ~1.6 % against bdpt
-    # (measured), so the merging weights take part.
+    # (of the view radius, 4.7 cm) merging takes part in the vcm image, so the merging
+    # weights are compared too.
     sc = jaxvcm.scene_from_dict(S.medium_furnace(np.array([1.0, 2.0, 0.5]), (0.3, 0.6, 1.2),
                                                  w=8, h=8))
     cfg = RenderConfig(algorithm=alg, max_depth=3, radius=0.1)
@@ -221,10 +221,10 @@ def _carried_scene(name):
     return jaxvcm.load_scene(os.path.join(ROOT, "scenes", f"{name}.toml"), width=16, height=16)
 
 
-def _carried_config(alg, spp=1, **kw):
+def _carried_config(alg, spp=1, radius=0.1, **kw):
     # rr_depth 2 < max_depth 5: roulette starts inside the paths, so the recursion's
     # roulette variants (the reverse factors near the join without q) are all read
-    return RenderConfig(algorithm=alg, max_depth=5, rr_depth=2, radius=0.1, spp=spp, **kw)
+    return RenderConfig(algorithm=alg, max_depth=5, rr_depth=2, radius=radius, spp=spp, **kw)
 
 
 # medium_furnace: a scattering medium inside emitting walls (medium and surface vertices,
@@ -240,7 +240,10 @@ def test_carried_recursive_technique_images_equal_explicit(alg, name):
     # image's largest value; a wrong roulette variant of the merges gave 1.2e-2, bpm on the
     # furnace). Tolerance 1e-5 of the largest technique value.
     sc = _carried_scene(name)
-    cfg = _carried_config(alg, spp=1 if name == "medium_furnace" else 4)
+    if name == "medium_furnace":  # a 9.6 cm first radius (twice the view radius's 0.1)
+        cfg = _carried_config(alg, spp=1, radius=S.radius_fraction(sc, 0.096))
+    else:
+        cfg = _carried_config(alg, spp=4)
     key = jax.random.key(3)
     te, se = _technique_images(sc, key, cfg)
     tr, sr = _technique_images(sc, key, dataclasses.replace(cfg, mis_form="recursive"))

@@ -23,7 +23,7 @@ from jaxvcm.cli import main
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCENE = os.path.join(ROOT, "scenes", "cornell.toml")
 D = 4
-# radius 0.05 of the bounding radius: 64 photons a pass, so some merges land (default 0.005:
+# radius 0.05 of the view radius: 64 photons a pass, so some merges land (default 0.005:
 # none in 2 passes at 8 x 8)
 ARGS = ["--width", "8", "--height", "8", "--max-depth", str(D), "--passes", "2",
         "--radius", "0.05", "--quiet"]

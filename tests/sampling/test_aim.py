@@ -154,8 +154,9 @@ def test_aimed_merging_renders_the_refracted_sun_seen_from_above(alg):
     # the sunlit floor: E[L] = T0 / eta^2 e^{-sigma_a d} L_f), 90 % of the photons aimed at
     # the footprint (the same standard-error bar as the unaimed twin there, which needs 4x the
     # paths at this narrower field of view).
+    # First radius 7.5 cm (the camera sees ~0.3 m of floor: r / R_v = 0.23).
     sc = _aimed(S.flat_water_sun(D_, SIGMA_A, ETA, A_, 1.6, SUN, E_, fov=20.0), 0.9)
-    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=0.05, spp=8)
+    cfg = RenderConfig(algorithm=alg, max_depth=4, radius=S.radius_fraction(sc, 0.075), spp=8)
     imgs = []
     for i in range(64):
         img, diag, cfg = render_pass_host(sc, jaxvcm.pass_key(0, i), cfg, i)
@@ -261,11 +262,12 @@ def test_view_guide_aims_at_the_caster_and_sizes_the_radius():
     # The camera sees the floor straight below through 4.2 m of path: one pixel's footprint
     # is 4.2 x 2 tan(1 deg) / 8 = 1.833 cm (refraction at normal incidence does not change
     # it to first order), the first-pass radius that (radius_pixels = 1) as a fraction of
-    # the bounding radius, unless the grid's precision needs more (below). The sun's refracted ray comes down to the floor's centre from
+    # the view radius (`Scene.view_radius`, what RenderConfig.radius multiplies), unless the
+    # grid's precision needs more (below). The sun's refracted ray comes down to the floor's
+    # centre from
     # x = 1.2 tan(theta_t) (sin theta_t = sin 14 deg / 1.33) on the plane, z = 0: the map
     # aims there, inside a box of a few decimetres (the seen spot is ~15 cm wide), and not
     # at the mirrored point x < 0 a symmetric guess would also take.
-    from jaxvcm._scene import bounding_sphere
     # The radius is not below what a float32 hash grid resolves at the pool's extent
     # (|x| 60 m + 120 m = 180 m: cells >= 180 / (2^12 - 2) / (1 + 2^-7) m, i.e. radii
     # >= 2.18 cm) for 10^4 passes of the schedule (x 1.01 x 10^4^(0.25 / 3) = 2.154):
@@ -275,10 +277,10 @@ def test_view_guide_aims_at_the_caster_and_sizes_the_radius():
     fp = 4.2 * 2.0 * math.tan(math.radians(1.0)) / 8
     assert abs(g.footprint / fp - 1.0) < 0.01, (g.footprint, fp)
     floor = 180.0 / (4094 * 2 * (1 + 2**-7)) * 1.01 * 1e4 ** (0.25 / 3)
-    assert abs(cfg.radius * float(bounding_sphere(sc)[1]) / floor - 1.0) < 0.01
+    assert abs(cfg.radius * float(sc.view_radius) / floor - 1.0) < 0.01
     sc64 = _flat_pool(120.0, 0.9, dtype=jnp.float64)
     _, cfg64, _ = jaxvcm.aim_at_view(sc64, RenderConfig(algorithm="vcm", max_depth=4))
-    assert abs(cfg64.radius * float(bounding_sphere(sc64)[1]) / fp - 1.0) < 0.01
+    assert abs(cfg64.radius * float(sc64.view_radius) / fp - 1.0) < 0.01
     x0, x1, z0, z1 = g.aim_rect
     assert (x1 - x0) * (z1 - z0) < 0.25, g.aim_rect  # of a 14400 m^2 footprint
     s_t = math.sin(math.radians(14.0)) / ETA

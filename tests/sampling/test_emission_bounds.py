@@ -1,18 +1,23 @@
-"""The disk that the sun's (sky's, background's) photons start on, and the merging radius's
-reference length, come from the surfaces light can reach, never from the camera.
+"""The disk that the sun's (sky's, background's) photons start on comes from the surfaces
+light can reach, the merging radius's reference length from the surfaces the camera sees;
+neither from where the camera stands.
 
 `Scene.bounds` is the box of the shapes and the water (`_io._scene_file._geometry`): every
 line that meets a surface passes through the sphere around that box, so the bounding disk
 covers every photon that can land (unbiased by construction), and a camera further back no
-longer thins the photons that land or widens the default merging radius.
+longer thins the photons that land. `Scene.view_radius` is half the diagonal of the box of
+the non-specular points a fixed grid of camera rays sees, through and in flat water
+(`_io._view`): the length `RenderConfig.radius` multiplies.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 import jaxvcm
 from jaxvcm import RenderConfig
+from jaxvcm._io._view import VIEW_RAYS
 from jaxvcm._scene import bounding_sphere
 
 from .. import _analytic as A
@@ -68,3 +73,69 @@ def test_light_tracing_from_far_away_sees_the_sunlit_plane():
     mean, se = x.mean(0), x.std(0, ddof=1) / np.sqrt(len(x))
     assert np.all(np.abs(mean - expected) < 4 * se + 1e-4 * expected), (mean, se, expected)
     assert np.all(se < 0.02 * expected), f"SE {se / expected}: the photons do not land"
+
+
+# ---------------------------------------------------------------- the view radius
+def test_view_radius_of_a_plane_seen_straight_down():
+    # The plane's central 1 m x 1 m fills the view from any height (fov = 2 atan(0.5 / h)),
+    # and the outermost of the VIEW_RAYS x VIEW_RAYS rays through pixel centres meet it
+    # (1 - 1 / VIEW_RAYS) x 0.5 m from the centre: the view's box is a square of that
+    # half-side on the plane, its half diagonal sqrt(2) of it, at 3 m and at 40 m alike
+    # (float32 storage: 1e-6). The bounding radius stays sqrt(2) (the whole plane).
+    a = 0.5 * (1.0 - 1.0 / VIEW_RAYS)
+    for h in (3.0, 40.0):
+        s = jaxvcm.scene_from_dict(_plane(h))
+        assert float(s.view_radius) == pytest.approx(np.sqrt(2.0) * a, rel=1e-6)
+        assert float(bounding_sphere(s)[1]) == pytest.approx(np.sqrt(2.0), rel=1e-6)
+
+
+def test_view_radius_through_flat_water():
+    # flat_water_sky's wide flat pool (no shapes above it), the camera h = 2 m above the surface
+    # looking straight down, the floor d = 1 m below it. The film's rays have tangents
+    # (sx, sy) on a grid of VIEW_RAYS x VIEW_RAYS pixel centres; the one (sx, sy) meets the
+    # surface h (sx, sy) from the axis and refracts towards the floor at sin(theta) =
+    # sin(phi) / eta, q = |(sx, sy)| = tan(phi), landing at h (sx, sy) + d tan(theta) (sx,
+    # sy) / q; reflected, it leaves (no point). The largest x is that of sx = t_max (the
+    # outermost column) with the smallest |sy| = tan(fov / 2) / VIEW_RAYS (the refraction
+    # bends the diagonal rays a little more), so the view's box is the floor's square of
+    # that half-side and its radius sqrt(2) x that. A camera 10x higher with a 10x narrower
+    # view sees nearly the same box; the bounding radius (the 120 m pool) is 3 orders of
+    # magnitude larger: the old reference length.
+    d, eta = 1.0, 1.33
+
+    def scene(h, tan_half):
+        doc = S.flat_water_sky(d, (0.1, 0.1, 0.1), eta, 0.5, d + h)
+        doc["camera"]["fov"] = float(np.degrees(2 * np.arctan(tan_half)))
+        return jaxvcm.scene_from_dict(doc)
+
+    for h, th in ((2.0, 0.1), (20.0, 0.01)):
+        sx, sy = th * (1.0 - 1.0 / VIEW_RAYS), th / VIEW_RAYS
+        q = np.hypot(sx, sy)
+        sin_t = q / np.sqrt(1.0 + q * q) / eta
+        x_max = h * sx + d * sin_t / np.sqrt(1.0 - sin_t**2) * sx / q
+        s = scene(h, th)
+        assert float(s.view_radius) == pytest.approx(np.sqrt(2.0) * x_max, rel=1e-6)
+        assert float(bounding_sphere(s)[1]) > 80.0
+
+
+def test_default_radius_follows_the_view():
+    # The first pass's merging radius is RenderConfig.radius x the view radius, not below
+    # what the float32 hash grid resolves at the scene's extent (`_merge.pass_radius`). On
+    # the wide pool (the 120 m basin seen through 2 degrees from 3 m: ~10 cm of floor) that
+    # is the grid's floor, 2.2 cm, where the bounding radius gave 0.42 m, a blur four times
+    # wider than the whole view (merging's bias grows as r^2). On the default pool the
+    # camera sees the whole basin and its walls: the view radius equals the bounding radius
+    # (the view's box reaches the box's corners within a ray's spacing, and is capped
+    # there), and so does the radius.
+    from jaxvcm._merge import FLOOR_MARGIN, pass_radius, precise_radius
+
+    wide = jaxvcm.load_scene("scenes/pool_wide.toml", width=8, height=8)
+    r = float(pass_radius(RenderConfig(algorithm="vcm"), wide, 0).surface)
+    assert 0.09 < float(wide.view_radius) < 0.11
+    floor = FLOOR_MARGIN * precise_radius(wide)[0]
+    assert r == pytest.approx(max(0.005 * float(wide.view_radius), floor), rel=1e-5)
+    assert r < 0.03 and 0.005 * float(bounding_sphere(wide)[1]) > 0.4
+    pool = S.shipped_scene("pool", 8, 8)
+    assert float(pool.view_radius) == pytest.approx(float(bounding_sphere(pool)[1]), rel=1e-6)
+    r = float(pass_radius(RenderConfig(algorithm="vcm"), pool, 0).surface)
+    assert r == pytest.approx(0.005 * float(bounding_sphere(pool)[1]), rel=1e-6)

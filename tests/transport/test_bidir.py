@@ -147,11 +147,12 @@ def assert_algorithms_agree(scene, algs, max_depth, seed, passes=24, blocks=4, w
 @pytest.mark.parametrize("name", ["pool_sky", "pool"])
 def test_pt_bdpt_and_vcm_agree_on_pool(name):
     # All three estimate the same (depth-truncated) image; compare 4x4 block means. VCM adds
-    # the merging bias, which at the default radius (0.005 R_bound ~ 14 mm on the pool,
-    # shrinking with the passes) is far below these standard errors (tests/merge/test_merge.py
-    # measures the bias against radius on a scene built to show it; on the pool see
-    # test_vcm_and_ppm_agree_on_pool). max_depth 4: every technique family of paths up to 4
-    # segments (camera -> surface -> floor -> surface -> light included).
+    # the merging bias, which at the default radius (0.005 R_v ~ 13 mm on the pool, R_v the
+    # view radius, shrinking with the passes) is far below these standard errors
+    # (tests/merge/test_merge.py measures the bias against radius on a scene built to show
+    # it; on the pool see test_vcm_and_ppm_agree_on_pool). max_depth 4: every technique
+    # family of paths up to 4 segments (camera -> surface -> floor -> surface -> light
+    # included).
     # pool_sky: 32 passes of 16 spp, SE of the image-mean difference ~1.0 % of the value.
     # pool (a small light above the water): the floor seen through the surface is lit only
     # by paths camera -> surface -> floor -> surface -> light, which pt and bdpt sample only
@@ -192,7 +193,7 @@ def test_vcm_and_ppm_agree_on_pool():
     # are left out of both (all others stay below Le / (25 spp)): the mask depends on that
     # one camera sample, independent of the pixel's other samples and of the photons, so it
     # scales both expectations alike. The value is the glint-free image mean.
-    # Bias: r = 0.02 R_bound (~5.6 cm). The disk kernel near a surface's edge (the basin's
+    # Bias: r = 0.02 R_v (~5.1 cm). The disk kernel near a surface's edge (the basin's
     # rim, its corners: the kernel takes only its own surface's photons) loses the disk's
     # part beyond the edge, (2 / (3 pi)) r of radiance per unit edge length; ppm merges at
     # every first diffuse vertex, vcm with a merging weight that grows with eta = pi r^2 N,
@@ -313,7 +314,7 @@ HARD = {
 @pytest.mark.parametrize("alg", ["lt", "bdpt", "vcm-r0.5"])
 @pytest.mark.parametrize("case", sorted(HARD))
 def test_hard_cases_finite_bidirectional(case, alg):
-    # vcm at a huge (0.5 R_bound) merging radius: every camera vertex merges with most
+    # vcm at a huge (0.5 R_v) merging radius: every camera vertex merges with most
     # photons and eta is large, pushing the MIS weights to their limit; every value stays
     # finite (a vanishing radius is tested in test_merge::test_merging_extreme_radii).
     d = S.shipped_doc("pool", 10, 10, **HARD[case])

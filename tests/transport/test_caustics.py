@@ -17,7 +17,7 @@ Tolerance per tile (tile means over 8 x 8 pixels of a 32 x 32 image, every chann
     |VCM - ref| <= K SE + |bias_r| + 2% ref
   * SE: standard error of the mean over the independent passes (K = 4.5 as elsewhere);
   * bias_r: merging blurs the floor irradiance with the disk kernel of the pass radius
-    (r_1 = 0.02 R_bound = 3.2 / 4.0 cm here, shrinking as i^(-1/8)); the caustics are sharp
+    (r_1 = 3.2 cm, shrinking as i^(-1/8)); the caustics are sharp
     (the surface focuses at ~0.6 m, the floor is 1.2 m down: caustic cusps), so per pixel
     the blur is large, but a tile mean only changes by the flux the blur carries across
     the tile's border: bias_r = tile(ref blurred with the pass-averaged disk) - tile(ref),
@@ -51,7 +51,7 @@ TILE = 8  # pixels per tile side for the tolerance checks (4 x 4 tiles)
 FINE = 4  # pixels per tile side for the convergence check (8 x 8 tiles)
 P = 32  # passes; the convergence check compares P with 4 P
 AIM = 0.9  # fraction of the sun's photons aimed at the water's footprint (VCM renders)
-RADIUS = 0.02  # first-pass merging radius, fraction of the scene's bounding radius
+RADIUS_M = 0.032  # first-pass merging radius (m), both views
 ALPHA = RenderConfig().alpha
 REF_ACC = 0.02
 
@@ -78,13 +78,9 @@ def scene_doc(view, size=SIZE):
                          camera=camera(view, size))
 
 
-def surface_radii(scene, radius, passes):
-    """Progressive disk radii of passes 0..passes-1: r_i = radius R_bound (i+1)^((alpha-1)/2),
-    R_bound half the diagonal of the scene's bounds (basin + camera: 1.60 m under water,
-    1.99 m with the camera 1.6 m above the water)."""
-    b = np.asarray(scene.bounds, float)
-    rb = 0.5 * np.linalg.norm(b[1] - b[0])
-    return radius * rb * (np.arange(passes) + 1.0) ** ((ALPHA - 1.0) / 2.0)
+def surface_radii(r_1, passes):
+    """Progressive disk radii of passes 0..passes-1: r_i = r_1 (i+1)^((alpha-1)/2)."""
+    return r_1 * (np.arange(passes) + 1.0) ** ((ALPHA - 1.0) / 2.0)
 
 
 def render_passes(scene, cfg, passes, seed):
@@ -165,11 +161,12 @@ def vcm_runs(pool, floor_map):
         doc = scene_doc(view)
         doc["lights"][0]["aim"] = AIM
         scene = jaxvcm.scene_from_dict(doc, view)
-        cfg = RenderConfig(algorithm="vcm", max_depth=v["depth"], radius=RADIUS)
+        cfg = RenderConfig(algorithm="vcm", max_depth=v["depth"],
+                           radius=S.radius_fraction(scene, RADIUS_M))
         imgs = render_passes(scene, cfg, 4 * P, v["seed"])
         cam = R.cam_from_dict(camera(view))
         ref = v["render"](pool, floor_map, cam, ss=32)
-        blurred = {n: v["render"](pool, R.disk_blur(floor_map, surface_radii(scene, RADIUS, n)),
+        blurred = {n: v["render"](pool, R.disk_blur(floor_map, surface_radii(RADIUS_M, n)),
                                   cam, ss=32) for n in (P, 4 * P)}
         out[view] = (imgs, ref, blurred)
     return out

@@ -81,7 +81,7 @@ K = 4.0
 W = H = 8
 SPP = 16
 DEPTH = 4
-RADIUS = 0.01  # merging radius, fraction of the scene's bounding radius (about 1.3 cm here)
+RADIUS = 0.01  # merging radius, fraction of the view radius (7 mm above, 4 mm under water)
 PASSES = 160
 BLOCKS = (1, 2)  # image rows x columns of blocks: halves near / far from the lit wall
 

@@ -525,7 +525,7 @@ def test_hero_termination_conserves_the_channel_sum(alg, view):
     # pool_sun. Seen from under the water (BDPT) the floor caustics are light subpaths
     # refracted into the water (dispersive light side: light tracing, connections). Seen
     # from above (VCM) they are light paths refracted into the water joined to camera paths
-    # refracted through the waves (both subpaths dispersive) by merges (0.1 R_bound radius:
+    # refracted through the waves (both subpaths dispersive) by merges (0.1 R_v, the view radius:
     # ~2 photons per gather) and connections; BDPT renders that floor black, hence "under".
     # Identity: give all C = 4 channels the SAME wavelength and a per-channel index equal in
     # every channel. Then hero mode takes exactly the paths of dispersion off (same keys,
