@@ -316,6 +316,7 @@ def query_reduce(grid: HashGrid, qx: ArrayLike, qy: ArrayLike, qz: ArrayLike,
     n_q = jnp.shape(qx)[0]
     dt = grid.dtype
     probe = jnp.zeros((max(1, min(int(chunk), n_q)),), jnp.int32)
+    fn = jax.jit(fn)  # one trace for the output shapes and the chunks' calls (same shapes)
     shape = jax.eval_shape(fn, probe, probe, probe.astype(dt))
     if grid.points.shape[0] == 0 or n_q == 0:
         out = jax.tree.map(lambda s: jnp.zeros((n_q,) + s.shape[1:], s.dtype), shape)

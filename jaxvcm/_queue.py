@@ -51,6 +51,19 @@ def first_true(m, size: int):
                                                        mode="drop")
 
 
+def traced_once(fn: Callable) -> Callable:
+    """`fn` as a `jax.jit` function: the output shapes that a queue's buffers need
+    (`jax.eval_shape` on one round's arguments, `round_args`) and the round's own call
+    then share one trace of the kernel (jit's trace cache) instead of tracing its Python
+    twice. The compiled program is the same: XLA inlines the call."""
+    return jax.jit(fn)
+
+
+def round_args(flat, W: int):
+    """Shape structs of one round's arguments: W items of each leaf of `flat`."""
+    return jax.tree.map(lambda a: jax.ShapeDtypeStruct((W,) + a.shape[1:], a.dtype), flat)
+
+
 def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None, summed=False,
                summed_rows: int | None = None):
     """`fn` vmapped over the items of `args` (pytree of arrays with leading item axes of
@@ -94,8 +107,8 @@ def masked_map(fn: Callable, mask, args, fill, split: int, cheap=None, summed=Fa
         order = jnp.full((rounds * W,), M, jnp.int32).at[at].set(
             jnp.arange(M, dtype=jnp.int32), mode="drop")
     order = order.reshape(rounds, W)
-    vfn = jax.vmap(fn)
-    shapes = jax.eval_shape(vfn, *jax.tree.map(lambda a: a[:1], flat))
+    vfn = traced_once(jax.vmap(fn))
+    shapes = jax.eval_shape(vfn, *round_args(flat, W))
     out0 = jax.tree.map(lambda f, s: jnp.full((M,) + s.shape[1:], f, s.dtype), fill, shapes)
 
     def work(out, idx, f=vfn):
@@ -146,8 +159,8 @@ def _summed_map(fn: Callable, mask, flat, W: int, n_rows: int | None = None):
     rounds = -(-M // W)
     count = jnp.sum(mask, dtype=jnp.int32)
     order = first_true(m, rounds * W).reshape(rounds, W)
-    vfn = jax.vmap(clean)
-    shape = jax.eval_shape(vfn, *jax.tree.map(lambda a: a[:1], flat))[0]
+    vfn = traced_once(jax.vmap(clean))
+    shape = jax.eval_shape(vfn, *round_args(flat, W))[0]
     rows_out = N if n_rows is None else n_rows
     out0 = (jnp.zeros((rows_out,) + shape.shape[1:], shape.dtype), jnp.zeros((), jnp.int32))
 
