@@ -91,24 +91,29 @@ def intersect_spheres(s: Spheres, o: Vec3, d: Vec3, tmin, tmax) -> tuple[Array, 
 
 
 # ---------------------------------------------------------------- water heightfield
-WAVES_UNROLLED = 4  # waves per trip of `over_waves`' loop
+WAVES_UNROLLED = 4  # waves per trip of `over_waves`' loop in the intersector
+SOLVER_WAVES_UNROLLED = 1  # ... in the manifold solves and their derivatives
 
 
-def over_waves(w: Water, body, init):
+def over_waves(w: Water, body, init, unroll: int = WAVES_UNROLLED):
     """`init` carried through body(amp, kx, kz, phase, carry) once per wave, in a rolled
     loop (`lax.fori_loop`): one copy of a wave's arithmetic in the compiled program
     whatever the number of waves, so compile time and memory do not grow with it (a
     wind-driven surface has hundreds). The carry is elementwise in the batch: every wave
-    updates it with elementwise ops, never a reduction over a short trailing axis."""
+    updates it with elementwise ops, never a reduction over a short trailing axis.
+    `unroll` waves per trip: the intersector's march (most of a pass's time) runs four per
+    trip; the manifold solves, whose derivatives copy the loop many times over, one
+    (`SOLVER_WAVES_UNROLLED`: the glints' program compiles in three quarters of the time,
+    at the same pass time)."""
     def step(i, c):
         return body(w.amp[i], w.kx[i], w.kz[i], w.phase0[i], c)
 
     if w.n_waves == 0:  # flat water (the body's gathers need a wave to trace)
         return init
-    return jax.lax.fori_loop(0, w.n_waves, step, init, unroll=max(1, min(w.n_waves, WAVES_UNROLLED)))
+    return jax.lax.fori_loop(0, w.n_waves, step, init, unroll=max(1, min(w.n_waves, unroll)))
 
 
-def water_height(w: Water, x, z, grad: bool = True):
+def water_height(w: Water, x, z, grad: bool = True, unroll: int = WAVES_UNROLLED):
     """Surface height h(x, z) and its gradient (dh/dx, dh/dz), elementwise in x, z
     (the sum over the waves in `over_waves`' rolled loop)."""
     zero = jnp.zeros(jnp.broadcast_shapes(jnp.shape(x), jnp.shape(z)), jnp.result_type(x, z))
@@ -116,7 +121,7 @@ def water_height(w: Water, x, z, grad: bool = True):
         def height(a, kx, kz, ph, h):
             return h + a * jnp.sin(kx * x + kz * z + ph)
 
-        return over_waves(w, height, zero + w.level), zero, zero
+        return over_waves(w, height, zero + w.level, unroll), zero, zero
 
     def wave(a, kx, kz, ph, c):
         h, hx, hz = c
@@ -124,7 +129,7 @@ def water_height(w: Water, x, z, grad: bool = True):
         cs = a * jnp.cos(arg)
         return h + a * jnp.sin(arg), hx + kx * cs, hz + kz * cs
 
-    return over_waves(w, wave, (zero + w.level, zero, zero))
+    return over_waves(w, wave, (zero + w.level, zero, zero), unroll)
 
 
 def water_normal(w: Water, x, z) -> Vec3:

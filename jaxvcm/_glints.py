@@ -185,12 +185,12 @@ def _may_hold(scene: Scene, pixel, c: Vec3, b, refract, b_dir: bool):
     lo, hi = w.level - A, w.level + A
     r1 = on(d0, w.level)
     rh1, _ = reach(r1, lo, hi)
-    h1, _, _ = geometry.water_height(w, r1.x, r1.z)
+    h1, _, _ = geometry.water_height(w, r1.x, r1.z, unroll=geometry.SOLVER_WAVES_UNROLLED)
     # the surface's height over the frustum's horizontal reach: h(r1) +- L rho_h
     lo, hi = jnp.maximum(lo, h1 - L * rh1), jnp.minimum(hi, h1 + L * rh1)
     r = on(d0, h1)
     rh, rho = reach(r, lo, hi)
-    _, gx, gz = geometry.water_height(w, r.x, r.z)
+    _, gx, gz = geometry.water_height(w, r.x, r.z, unroll=geometry.SOLVER_WAVES_UNROLLED)
     E = manifold._ends(w, c, b, refract, b_dir)
     wa = vec.normalize(c - r)
     if b_dir:
@@ -285,7 +285,7 @@ def _fresnel(scene: Scene, c: Vec3, s: Vec3, refract: bool):
     """(F [C], P_sel): the factor the interface gives the glint (R, or 1 - R) per channel,
     and the camera path's probability of choosing that lobe at s (`_materials`' hero)."""
     water = scene.water
-    _, hx, hz = geometry.water_height(water, s.x, s.z)
+    _, hx, hz = geometry.water_height(water, s.x, s.z, unroll=geometry.SOLVER_WAVES_UNROLLED)
     n = vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
     cos_o = vec.dot(n, vec.normalize(c - s))
     ior = scene.materials.ior[water.mat]
@@ -364,7 +364,7 @@ def _contribution(scene: Scene, cfg: RenderConfig, e: lights.Emission, x, z, ref
     # ---- visibility: c -> s (nothing before the root), s -> y ----
     d1 = vec.length(s - c)
     vis = geometry.unoccluded(scene, c, w, d1 * (1.0 - 1e-4), cfg.march_steps)
-    _, hx, hz = geometry.water_height(water, s.x, s.z)
+    _, hx, hz = geometry.water_height(water, s.x, s.z, unroll=geometry.SOLVER_WAVES_UNROLLED)
     n_s = vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
     w2 = -b if b_dir else vec.normalize(b - s)
     o2 = subpath.offset(s, n_s, w2)

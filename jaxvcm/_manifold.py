@@ -124,7 +124,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from . import _vec as vec
-from ._geometry import over_waves, water_height
+from ._geometry import SOLVER_WAVES_UNROLLED, over_waves, water_height
 from ._materials import fresnel_dielectric
 from ._scene import Water
 from ._vec import Vec3
@@ -158,7 +158,7 @@ class _Ends(NamedTuple):
 def below(w: Water, p: Vec3) -> Array:
     """p in the water: inside the (closed) footprint and under the surface."""
     fp = w.footprint
-    h, _, _ = water_height(w, p.x, p.z, grad=False)
+    h, _, _ = water_height(w, p.x, p.z, grad=False, unroll=SOLVER_WAVES_UNROLLED)
     return (p.x >= fp[0]) & (p.x <= fp[1]) & (p.z >= fp[2]) & (p.z <= fp[3]) & (p.y < h)
 
 
@@ -237,7 +237,7 @@ def _waves_d2(w: Water, x, z, fast: bool = False):
         return (h + sn, hx + kx * cs, hz + kz * cs, hxx - kx * kx * sn, hxz - kx * kz * sn,
                 hzz - kz * kz * sn)
 
-    return over_waves(w, wave, (zero + w.level,) + (zero,) * 5)
+    return over_waves(w, wave, (zero + w.level,) + (zero,) * 5, SOLVER_WAVES_UNROLLED)
 
 
 def _lever(ra, rb, b_is_direction: bool):
@@ -265,7 +265,7 @@ def _c_of(x, h, z, hx, hz, a: Vec3, b: Vec3, eta_a, eta_b, b_is_direction: bool)
 def _constraint(w: Water, x, z, a: Vec3, b: Vec3, eta_a, eta_b, b_is_direction: bool):
     """c(u, v) = m (H . T_u, H . T_v) / |H| with H = eta_a w_a + eta_b w_b (module doc), as
     a pair of arrays of x's shape (structure of arrays: no short trailing axis)."""
-    h, hx, hz = water_height(w, x, z)
+    h, hx, hz = water_height(w, x, z, unroll=SOLVER_WAVES_UNROLLED)
     return _c_of(x, h, z, hx, hz, a, b, eta_a, eta_b, b_is_direction)
 
 
@@ -668,7 +668,7 @@ def solve(water: Water, a: Vec3, b: Vec3, *, refract: bool, b_is_direction: bool
 
     def finish(x, z, keep):
         x, z = _polish(water, x, z, a, b, eta_a, eta_b, b_is_direction)
-        h, _, _ = water_height(water, x, z)
+        h, _, _ = water_height(water, x, z, unroll=SOLVER_WAVES_UNROLLED)
         xs_, zs_ = sg(x), sg(z)
         c, _, _ = _c_and_jac(w0, xs_, zs_, a0, b0, E.eta_a, E.eta_b, b_is_direction)
         ok, H_len, s = _checks(w0, xs_, zs_, a0, b0, E, refract, b_is_direction)
@@ -741,7 +741,7 @@ def polished(water: Water, a: Vec3, b: Vec3, x, z, *, refract, b_is_direction: b
         E = _ends(sg(water), sg(a), sg(b), refract, b_is_direction)
     eta_a, eta_b = _live_etas(water, E, refract)
     xp, zp = _polish(water, x, z, a, b, eta_a, eta_b, b_is_direction)
-    h, _, _ = water_height(water, xp, zp)
+    h, _, _ = water_height(water, xp, zp, unroll=SOLVER_WAVES_UNROLLED)
     return Vec3(xp, h, zp)
 
 
@@ -783,7 +783,7 @@ def _root_fn(water: Water, a: Vec3, s: Vec3, b: Vec3, refract: bool, b_is_direct
 
     def root(a_, b_):
         x, z = _polish(water, s.x, s.z, a_, b_, eta_a, eta_b, b_is_direction)
-        h, _, _ = water_height(water, x, z)
+        h, _, _ = water_height(water, x, z, unroll=SOLVER_WAVES_UNROLLED)
         return Vec3(x, h, z)
 
     return root
@@ -860,7 +860,7 @@ def fresnel_factor(water: Water, a: Vec3, s: Vec3, b: Vec3, *, refract: bool,
     (exact unpolarised Fresnel, `_materials.fresnel_dielectric`)."""
     E = _ends(water, jax.lax.stop_gradient(a), jax.lax.stop_gradient(b), refract,
               b_is_direction)
-    _, hx, hz = water_height(water, s.x, s.z)
+    _, hx, hz = water_height(water, s.x, s.z, unroll=SOLVER_WAVES_UNROLLED)
     n = vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
     cos_b = vec.dot(n, _w_b(b, s, b_is_direction))
     ior = water.ior

@@ -105,7 +105,7 @@ def _of_end(scene: Scene, light, b_dir: bool):
 
 
 def _normal(water, s: Vec3) -> Vec3:
-    _, hx, hz = geometry.water_height(water, s.x, s.z)
+    _, hx, hz = geometry.water_height(water, s.x, s.z, unroll=geometry.SOLVER_WAVES_UNROLLED)
     return vec.normalize(Vec3(-hx, jnp.ones_like(hx), -hz))
 
 
