@@ -34,10 +34,11 @@ def _env(cache: str) -> dict:
     env = dict(os.environ, JAXVCM_CACHE_DIR=cache, JAX_PLATFORMS=os.environ.get(
         "JAX_PLATFORMS", "cpu"))
     # the test suite's compile-time XLA settings (optimisation level 0, no fusion
-    # emitters: `tests/conftest.py`) must not leak into a user's render
+    # emitters, one codegen thread: `tests/conftest.py`) must not leak into a user's render
     flags = [f for f in env.get("XLA_FLAGS", "").split()
              if not f.startswith(("--xla_backend_optimization_level",
-                                  "--xla_cpu_use_fusion_emitters"))]
+                                  "--xla_cpu_use_fusion_emitters",
+                                  "--xla_cpu_parallel_codegen_split_count"))]
     env["XLA_FLAGS"] = " ".join(flags)
     return env
 

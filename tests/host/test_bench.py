@@ -168,6 +168,7 @@ def test_bench_startup_mode(tmp_path, monkeypatch):
     def fake(args, env):
         assert env["JAXVCM_CACHE_DIR"] and "optimization_level" not in env["XLA_FLAGS"]
         assert "fusion_emitters" not in env["XLA_FLAGS"]
+        assert "codegen_split_count" not in env["XLA_FLAGS"]
         seen.append("--no-glints" in args)
         t = next(times)
         if "render" in args:
