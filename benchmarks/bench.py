@@ -29,6 +29,9 @@ prints one line and exits with status 2.
 `--startup`: cold and warm first pass of `jaxvcm render` in fresh processes, from an empty
 and from a warm persistent compilation cache (`benchmarks/startup.py`).
 
+`--smallvcm`: SmallVCM's scene 0 with its settings at 10 / 30 / 90 s against a long VCM
+reference, RMSE and paths/s beside SmallVCM's figures (`benchmarks/smallvcm.py`).
+
 `--profile`: seconds per stage of one pass (`jaxvcm.profile_stages`: camera rays, light
 emission, subpaths, MIS partials, each technique, merging, film; each stage its own
 compiled program) against the whole single-jit pass, one table per scene (stages x
@@ -59,6 +62,7 @@ from . import peer_mitsuba as _peer
 from . import spectral as _sp
 from . import aim_sweep as _as
 from . import wide_pool as _wp
+from . import smallvcm as _sv
 from . import scene_size as _ss
 from . import scaling as _sc
 from . import startup as _st
@@ -251,6 +255,11 @@ def _parser() -> argparse.ArgumentParser:
                         "vcm+mnee; benchmarks/wide_pool.py)")
     g.add_argument("--wide-seconds", type=float, default=60.0, metavar="SEC",
                    help="seconds per algorithm of --wide-pool (60)")
+    g.add_argument("--smallvcm", action="store_true",
+                   help="SmallVCM's scene 0 (scenes/cornell_sun.toml, 256x256, depth 10, "
+                        "its radius and heuristic) at 10 / 30 / 90 s against a long VCM "
+                        "reference: RMSE and paths/s beside SmallVCM's figures (default pt "
+                        "bdpt ppm bpm vcm; benchmarks/smallvcm.py)")
     g.add_argument("--scene-size", action="store_true",
                    help="compile time, memory and pass time against the number of waves "
                         "(1 to 1000) and lights (1 to 100) (benchmarks/scene_size.py)")
@@ -475,12 +484,17 @@ def _render_reference(scene, config, seed: int, req_passes, req_time, log, label
                  "nonfinite": nonfinite}
 
 
-def _get_reference(a, scene_path: Path, scene, stem: str, sha: str, log) -> tuple:
-    config = render_config(a.reference_algorithm, max_depth=a.max_depth)
+def _get_reference(a, scene_path: Path, scene, stem: str, sha: str, log, config=None) -> tuple:
+    """The run's reference of `scene`: stored and matching, else rendered and stored.
+    `config`: the reference's configuration (default: `a.reference_algorithm` at
+    `a.max_depth`)."""
+    given = config is not None
+    if not given:
+        config = render_config(a.reference_algorithm, max_depth=a.max_depth)
     w, h = scene.camera.width, scene.camera.height
     ref_seed = a.seed + REF_SEED_OFFSET
-    exr, side = _ref_paths(a.reference_dir, stem, a.reference_algorithm.replace("+", "-"), w, h,
-                           config.max_depth)
+    name = config.algorithm if given else a.reference_algorithm.replace("+", "-")
+    exr, side = _ref_paths(a.reference_dir, stem, name, w, h, config.max_depth)
     want = {"scene_sha256": sha, "width": w, "height": h, "algorithm": config.algorithm,
             "max_depth": config.max_depth, "config": dataclasses.asdict(config)}
     shape = (h, w, 3)
@@ -854,6 +868,10 @@ def _settings(argv):
         if a.mode:
             raise _Usage(f"--wide-pool: not allowed with --{a.mode}")
         a.mode = "wide-pool"
+    if a.smallvcm:
+        if a.mode:
+            raise _Usage(f"--smallvcm: not allowed with --{a.mode}")
+        a.mode = "smallvcm"
     if a.scene_size:
         if a.mode:
             raise _Usage(f"--scene-size: not allowed with --{a.mode}")
@@ -890,6 +908,7 @@ def _settings(argv):
                  "scene-size": ["vcm"],
                  "scale-sweep": ["vcm", "ppm"],
                  "wide-pool": list(_wp.DEFAULT_ALGORITHMS),
+                 "smallvcm": list(_sv.DEFAULT_ALGORITHMS),
                  "peer": ["pt"]}.get(a.mode, ["pt"])
     a.algorithms = _split_list(a.algorithms or mode_algs)
     for alg in a.algorithms + [a.reference_algorithm]:
@@ -928,6 +947,7 @@ def _settings(argv):
     if a.reference_time is None and a.reference_passes is None:
         a.reference_time = (QUICK_REFERENCE_TIME if a.quick else
                             _peer.DEFAULT_REFERENCE_TIME if a.mode == "peer"
+                            else _sv.DEFAULT_REFERENCE_TIME if a.mode == "smallvcm"
                             else DEFAULT_REFERENCE_TIME)
     a.reference_dir = Path(a.reference_dir) if a.reference_dir else root / "docs" / "bench_refs"
     a.out = Path(a.out) if a.out else root / "docs" / "benchmarks.md"
@@ -1028,6 +1048,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.mode == "wide-pool":
             _wp.run_wide(a, argv, C.Log(a.quiet))
+            return 0
+        if a.mode == "smallvcm":
+            _sv.run_smallvcm(a, argv, C.Log(a.quiet))
             return 0
         if a.mode == "scene-size":
             _ss.run_scene_size(a, argv, a.scene_paths[0], C.Log(a.quiet))

@@ -264,3 +264,37 @@ def test_bench_scene_size_mode(tmp_path, monkeypatch):
         ("1000", "1", "23,000"), ("4", "10", "22,000"), ("4", "100", "22,000")]
     assert rows[3]["pass"] == "2020.0 ms" and rows[5]["compile"] == "11.0 s"
     assert json.loads((tmp_path / "b_scene-size.json").read_text())["size"] == 32
+
+
+# ---- SmallVCM's scene 0 (--smallvcm): settings, the ratios and the verdict, no rendering
+def test_bench_smallvcm_settings_and_ratios():
+    import numpy as np
+
+    from benchmarks import smallvcm as _sv
+    a = _bench._settings(["--smallvcm"])
+    assert a.mode == "smallvcm" and a.algorithms == ["pt", "bdpt", "ppm", "bpm", "vcm"]
+    assert a.reference_time == 600.0
+    # SmallVCM's first radius in metres: 0.00665 = radius fraction x the view radius
+    scene = type("S", (), {"view_radius": 2.0})()
+    cfg = _sv.config("ppm", scene)
+    assert cfg.mis == "balance" and cfg.max_depth == 10 and cfg.alpha == 0.75
+    assert math.isclose(cfg.radius * 2.0, 0.00665, rel_tol=1e-12)
+    # the reference's noise comes off in quadrature: sqrt(0.05^2 - 0.03^2) = 0.04
+    assert math.isclose(_sv.rmse_corrected(0.05, 0.03), 0.04, rel_tol=1e-12)
+    assert _sv.rmse_corrected(0.02, 0.03) == 0.0
+    # a uniform error of 0.05 in every pixel, reference noise 0.04: corrected RMSE 0.03;
+    # vcm at 30 / 90 s: 0.03 / 0.0489 = 0.61, 0.03 / 0.0322 = 0.93 (met); 65,536 x 2
+    # paths per pass, 10 passes in 1 s: 1,310,720 paths/s, SmallVCM's 532 k / that = 0.41
+    ref = np.zeros((4, 4, 3))
+    runs = [{"budget": b, "passes": 10, "seconds": 1.0, "image": ref + 0.05,
+             "camera_paths": 655_360, "light_paths": 655_360, "over_budget": False}
+            for b in _sv.BUDGETS]
+    rows = _sv.rows_for("vcm", runs, ref, 0.04)
+    assert math.isclose(rows[1]["rmse_ratio"], 0.03 / 0.0489, rel_tol=1e-9)
+    assert math.isclose(rows[2]["paths_ratio"], 532e3 / 1_310_720, rel_tol=1e-9)
+    for r in rows:
+        r["warm_up_s"] = 1.0
+    text = _sv.verdict(rows)
+    assert "missed: none" in text and "vcm RMSE at 90 s (0.93)" in text
+    rows[2]["rmse_ratio"] = 1.5  # a planted miss must be reported
+    assert "missed: vcm RMSE at 90 s (1.50)" in _sv.verdict(rows)
