@@ -90,7 +90,7 @@ PROFILE_TAG = "stage-profile"
 # row order of the profile tables (`jaxvcm.profile_stages` names; others go before the sums)
 PROFILE_STAGES = ("setup", "camera rays", "light emission", "subpaths",
                   "subpaths, emitter hits, next-event estimation", "mis partials",
-                  "emitter hits", "glints", "vertex connection",
+                  "glint roots", "emitter hits", "glints", "vertex connection",
                   "manifold next-event estimation", "merging", "film")
 _TAG_RE = re.compile(r"^[A-Za-z0-9_.+-]+$")
 _SECTION_RE = re.compile(

@@ -214,13 +214,13 @@ def connection_join_pdfs(scene: Scene, y, yp, z, zp, w: Vec3, d, wseg,
 
 # ---------------------------------------------------------------- the techniques
 def emitter_hits(scene: Scene, cfg: RenderConfig, cam: PathEnds, verts: subpath.Vertex,
-                 etas, parts, pixel=None, mnee=False):
+                 etas, parts, glint_roots=None, mnee=False):
     """s = 0: z_j on an emitter or at infinity (sky), j = 1..D: {(0, j + 1): [N, C]}.
-    `pixel` [N] (the paths' pixels): the glint technique runs, and the emitter hits of its
-    paths take their share of them (`_glints.emitter_share`). `mnee`: manifold next-event
-    estimation runs; an emitter hit through the water surface counts it in its sums
-    (`_mnee.emitter_hit_factor`)."""
-    val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas, pixel, mnee)
+    `glint_roots` (ok [R, N], s [R, N]: F_pixel of each path's z_2, `_glints.Found.share`):
+    the glint technique runs, and the emitter hits of its paths take their share of them
+    (`_glints.emitter_share`). `mnee`: manifold next-event estimation runs; an emitter hit
+    through the water surface counts it in its sums (`_mnee.emitter_hit_factor`)."""
+    val = _emitter_hits_queued(scene, cfg, cam, verts, parts, etas, glint_roots, mnee)
     return {(0, j + 1): val[j - 1] for j in range(1, cfg.max_depth + 1)}
 
 
@@ -296,7 +296,7 @@ def _tr_one(scene: Scene, wseg, d):
 
 
 def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
-                         verts: subpath.Vertex, parts, etas, pixel=None, mnee=False):
+                         verts: subpath.Vertex, parts, etas, glint_roots=None, mnee=False):
     """Emitter hits [D, N, C] (z_j, j = 1..D) as one work queue over (vertex, lane) items:
     only the live vertices that see emission (a light, or the sky after an escape) evaluate
     the join; in a pool few camera vertices do."""
@@ -331,9 +331,10 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
             w = sg(mis_form(cfg).join_weight(cfg, s0, i + 2, L0, parts[1], sg(A_s), sg(A_s1),
                                              one, one, jnp.zeros((), bool), esc, sg(log_n),
                                              lanes=((0,), (n,))))
-        if pixel is not None and glint:  # the glints' paths: the emitter hit's share of them
+        if glint_roots is not None and glint:  # the glints' paths: the hit's share of them
             z0, z1 = cam_at(0, n), cam_at(1, n)
-            w = w * glint_share(scene, cfg, z0.p, z1, z, lid, esc, i + 1, pixel[n])
+            w = w * glint_share(scene, cfg, z0.p, z1, z, lid, esc, i + 1, None,
+                                jax.tree.map(lambda a: a[:, n], glint_roots))
         return z.beta * r.Le * w
 
     ok = verts.alive & jnp.any(verts.Le > 0, axis=-1)
@@ -341,10 +342,11 @@ def _emitter_hits_queued(scene: Scene, cfg: RenderConfig, cam: PathEnds,
     nn = jnp.broadcast_to(jnp.arange(N, dtype=jnp.int32)[None, :], (D, N))
     # narrow rounds (N / 8 items): a round costs its width whatever it holds, and the hits
     # are few (in a pool; with a sky, up to one per path)
-    if pixel is None:
+    if glint_roots is None:
         return masked_map(item, ok, (ii, nn), 0.0, 8 * D)
-    # the glint share's Newton solves only where the path can be a glint's, z_2 seen in
-    # the water surface at z_1: a queue of its own, far narrower (a few such hits a pass)
+    # the glint share (its chain's Jacobian) only where the path can be a glint's, z_2
+    # seen in the water surface at z_1: a queue of its own, far narrower (a few such hits
+    # a pass)
     water = scene.water
     glint = (ii == 1) & ((cam.kind[1] == MAT_DIELECTRIC) & (cam.mat[1] == water.mat))[None, :]
     return (masked_map(lambda i, n: item(i, n, glint=False), ok & ~glint, (ii, nn), 0.0, 8 * D)

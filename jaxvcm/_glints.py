@@ -68,6 +68,8 @@ configuration, and any positive pdfs keep the weights' sum 1.)
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -423,61 +425,123 @@ def light_uniforms(key, N: int, samples: int, dt):
     return u.reshape(N * samples, 5)
 
 
-def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES):
+def points(scene: Scene, pixel, key, samples: int = SAMPLES):
+    """The technique's light points: (e [K] `_lights.Emission`, their paths' pixels [K]),
+    K = N `samples`, point k of path k // samples (`light_uniforms`)."""
+    u = light_uniforms(key, pixel.shape[0], samples, scene.camera.origin.dtype)
+    return (jax.vmap(lambda uu: lights.sample_emission(scene, uu))(u),
+            jnp.repeat(pixel, samples))
+
+
+def find(scene: Scene, pix, b, use, refract, b_dir: bool):
+    """F_pixel(b) (`roots`) of the items (pixel `pix` [M], light end `b` [M]) where `use`
+    holds, as work queues: the centre's solve for the items whose pixel may hold a root
+    (`_may_hold`: 2.6 % of the glint technique's at 256 x 256 on the default pool), the
+    other seeds' for the few whose centre root lands in or beside the pixel. Returns (ok
+    [1 + EXTRA, M], s [1 + EXTRA, M] stopped points): item for item what `roots` returns."""
+    c = vec.from_array(scene.camera.origin)
+    zero = jnp.zeros((), scene.camera.origin.dtype)
+    none = Vec3(zero, zero, zero)
+    may = jax.vmap(lambda p, bb: _may_hold(scene, p, c, bb, refract, b_dir))(pix, b) & use
+    ok0, s0, more = masked_map(lambda p, bb: _centre(scene, p, c, bb, refract, b_dir), may,
+                               (pix, b), (False, none, False), 16)
+    okm, sm = masked_map(lambda p, bb, o, q: _more(scene, p, c, bb, refract, b_dir, o, q),
+                         more, (pix, b, ok0, s0), (False, none), 128)
+    ok = jnp.concatenate([ok0[None], okm.T], axis=0)
+    s = jax.tree.map(lambda a, q: jnp.concatenate([a[None], q.T], axis=0), s0, sm)
+    return ok, s
+
+
+def share_items(scene: Scene, cam, verts):
+    """The camera paths whose emitter hit may take a share of the glints (`emitter_share`:
+    z_2 on an area light, seen in the water surface at z_1), and z_2 on the light: (want
+    [N], y [N] stopped points)."""
+    kinds = scene.lights.kind
+    light = verts.light[1]
+    is_area = jnp.asarray([k in (LIGHT_RECT, LIGHT_SPHERE) for k in kinds])[
+        jnp.maximum(light, 0)] & (light >= 0)
+    want = (verts.alive[1] & jnp.any(verts.Le[1] > 0, axis=-1) & ~verts.escaped[1] & is_area
+            & (cam.kind[1] == MAT_DIELECTRIC) & (cam.mat[1] == scene.water.mat))
+    return want, Vec3(*(jax.lax.stop_gradient(a[2]) for a in cam.p))
+
+
+class Found(NamedTuple):
+    """The roots F_pixel of one pass, found once (`search`): per kind of light end
+    (`_ends`), the technique's (ok [1 + EXTRA, K], s [1 + EXTRA, K]); and `share`, the
+    emitter hits' (ok [1 + EXTRA, N], s [1 + EXTRA, N]) of their paths' z_2 (None: no area
+    light, or not asked for)."""
+
+    technique: tuple
+    share: Any = None
+
+
+def search(scene: Scene, pixel, key, cam=None, verts=None, samples: int = SAMPLES) -> Found:
+    """F_pixel for the technique's light points and, given the camera records (`cam`
+    `PathEnds`, `verts` records), for the emitter hits that take a share of the glints
+    (`share_items`): the point-light ends of both in one set of queues, so the compiled
+    pass holds one copy of the solves and both sides meet the same F by construction."""
+    e, pix = points(scene, pixel, key, samples)
+    K = pix.shape[0]
+    c = vec.from_array(scene.camera.origin)
+    refract, exists = law(scene, c)
+    tech, share = [], None
+    for b_dir in _ends(scene):
+        use = exists & ((e.infinite & e.delta) if b_dir else ~e.infinite)
+        b = e.d if b_dir else e.p
+        if b_dir or cam is None:
+            tech.append(find(scene, pix, b, use, refract, b_dir))
+            continue
+        want, y = share_items(scene, cam, verts)
+        cat = lambda a, q: jnp.concatenate([a, q])  # noqa: E731
+        ok, s = find(scene, cat(pix, pixel), jax.tree.map(cat, b, y), cat(use, want & exists),
+                     refract, False)
+        tech.append((ok[:, :K], jax.tree.map(lambda a: a[:, :K], s)))
+        share = (ok[:, K:], jax.tree.map(lambda a: a[:, K:], s))
+    return Found(tuple(tech), share)
+
+
+def glints(scene: Scene, cfg: RenderConfig, pixel, key, samples: int = SAMPLES,
+           found: Found | None = None):
     """The glint technique for every camera path (its pixel [N]): ([N, C] per path, the
     film's mean over its pixel's samples as every camera technique; the number of
-    non-finite values, zeroed). Every path samples `samples` light points and, where its
-    pixel may hold a root of a point (`_may_hold`), runs the pixel centre's solve (`roots`;
-    the other seeds' solves for the few points whose centre root lands in or beside the
-    pixel); only the roots in the pixel trace the shadow rays and evaluate the Jacobians.
-    Each stage is a work queue (`_queue.masked_map`); the path's value is the mean over
+    non-finite values, zeroed). Every path samples `samples` light points (`points`) and
+    finds their roots in its pixel (`search`, or `found` if the pass already searched
+    with the same key); only the roots in the pixel trace the shadow rays and evaluate
+    the Jacobians, in a work queue (`_queue.masked_map`); the path's value is the mean over
     its points."""
     N = pixel.shape[0]
     K = N * samples
     dt = scene.camera.origin.dtype
-    u = light_uniforms(key, N, samples, dt)
-    refract, exists = law(scene, vec.from_array(scene.camera.origin))
-    c = vec.from_array(scene.camera.origin)
-    e = jax.vmap(lambda uu: lights.sample_emission(scene, uu))(u)
-    pix = jnp.repeat(pixel, samples)  # item k: path k // samples
+    e, _ = points(scene, pixel, key, samples)
+    if found is None:
+        found = search(scene, pixel, key, samples=samples)
+    refract, _ = law(scene, vec.from_array(scene.camera.origin))
     out = jnp.zeros((K, scene.channels), dt)
     bad = jnp.zeros((), jnp.int32)
     item_of = jnp.arange(K, dtype=jnp.int32)
-    zero = jnp.zeros((), dt)
-    for b_dir in _ends(scene):
-        use = exists & ((e.infinite & e.delta) if b_dir else ~e.infinite)
-        b = e.d if b_dir else e.p
-        # F_pixel(y) (`roots`): the centre's solve for the items whose pixel may hold a
-        # root (`_may_hold`: 2.6 % of them at 256 x 256 on the default pool), the other
-        # seeds' for the few whose centre root lands in or beside the pixel (work queues)
-        may = jax.vmap(lambda p, bb: _may_hold(scene, p, c, bb, refract, b_dir))(pix, b) & use
-        ok0, s0, more = masked_map(lambda p, bb: _centre(scene, p, c, bb, refract, b_dir), may,
-                                   (pix, b), (False, Vec3(zero, zero, zero), False), 16)
-        okm, sm = masked_map(lambda p, bb, o, q: _more(scene, p, c, bb, refract, b_dir, o, q),
-                             more, (pix, b, ok0, s0), (False, Vec3(zero, zero, zero)), 128)
-
+    for b_dir, (ok, s) in zip(_ends(scene), found.technique):
         # the contributions of every root found, item (seed, k): the centre's roots (a few
         # per cent of the light points hold one), the other seeds' (far fewer), in one
         # queue of rounds of K / 16 items, added per light point
-        found = jnp.concatenate([ok0[None], okm.T], axis=0)  # [1 + EXTRA, K]
-        xs = jnp.concatenate([s0.x[None], sm.x.T], axis=0)
-        zs = jnp.concatenate([s0.z[None], sm.z.T], axis=0)
         ks = jnp.broadcast_to(item_of, (1 + EXTRA, K))
 
         def item(x, z, k, b_dir=b_dir):
             ek = jax.tree.map(lambda a: a[k], e)
             return _contribution(scene, cfg, ek, x, z, refract, b_dir, samples)
 
-        val, n_bad = masked_map(item, found, (xs, zs, ks), 0.0, 16 * (1 + EXTRA), summed=True)
+        val, n_bad = masked_map(item, ok, (s.x, s.z, ks), 0.0, 16 * (1 + EXTRA), summed=True)
         out, bad = out + val, bad + n_bad
     return out.reshape(N, samples, -1).mean(axis=1), bad
 
 
-def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, escaped, j, pixel):
+def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, escaped, j, pixel,
+                  found=None):
     """The emitter hit's share w_eh of its path z0 (pinhole) -> z1 -> z2 (on `light`) at
     camera vertex z_j (module doc): 1 unless j = 2, z1 is on the water surface, the light
     is an area light and F_pixel(z2) returns z1; then p_eh^beta / (p_eh^beta + p_g^beta).
-    z1, z2: one vertex each of a `PathEnds` (p, n, kind, mat read)."""
+    z1, z2: one vertex each of a `PathEnds` (p, n, kind, mat read). `found`: F_pixel(z2)
+    as (ok [1 + EXTRA], s [1 + EXTRA]) from the pass's `search`; None: solved here
+    (`roots`)."""
     water = scene.water
     dt = z0.x.dtype
     kinds = scene.lights.kind
@@ -488,7 +552,7 @@ def emitter_share(scene: Scene, cfg: RenderConfig, z0: Vec3, z1, z2, light, esca
     refract, exists = law(scene, z0)
     sg = jax.lax.stop_gradient
     y = vec.Vec3(*(sg(a) for a in z2.p))
-    ok, s = roots(scene, pixel, z0, y, refract, exists)
+    ok, s = roots(scene, pixel, z0, y, refract, exists) if found is None else found
     hit = jax.vmap(lambda q: _same(z0, q, Vec3(*(sg(a) for a in z1.p))))(s) & ok
     found = shape & jnp.any(hit)
     s1 = jax.tree.map(lambda a: a[jnp.argmax(hit)], s)

@@ -134,6 +134,8 @@ class PassState(eqx.Module):
     n_cverts: Int[Array, ""] | None = None  # live camera vertices, when no records are kept
     # ---- MIS: (light, camera) per-subpath state
     parts: tuple[SubpathMIS, SubpathMIS] | None = None
+    # ---- glints: F_pixel of the glints' light points and of the emitter hits' paths
+    glint_roots: glints.Found | None = None
     # ---- techniques: per label, [N, C] per camera path or a light-tracing splat
     merge_lengths: bool = eqx.field(static=True, default=False)  # merges split by photon
     labels: tuple[Technique, ...] = eqx.field(static=True, default=())
@@ -366,9 +368,9 @@ def mis_partials(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
 
 # ---- [s = 0] emitter hits of the camera subpaths (ppm: in its gather)
 def emitter_hits(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
-    pixel = _path_pixels(scene, cfg, st) if _glints_on(scene, cfg) else None
+    share = st.glint_roots.share if st.glint_roots is not None else None
     return _add(st, connect.emitter_hits(scene, cfg, st.cends, st.cverts, st.mis_etas, st.parts,
-                                         pixel, _mnee_on(scene, cfg)))
+                                         share, _mnee_on(scene, cfg)))
 
 
 # ---- manifold next-event estimation: from camera vertices under the water through the
@@ -390,11 +392,24 @@ def _glints_on(scene: Scene, cfg: RenderConfig) -> bool:
     return cfg.glints and glints.applies(scene)
 
 
+def _glint_key(st: PassState):
+    return jax.random.fold_in(jax.random.fold_in(st.key, glints.STREAM), st.chunk)
+
+
+def glint_roots(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
+    """F_pixel of the glints' light points and of the emitter hits that take a share of
+    them, in one search (`_glints.search`): one copy of the solves in the pass."""
+    if not _glints_on(scene, cfg):
+        return st
+    return dataclasses.replace(st, glint_roots=glints.search(
+        scene, _path_pixels(scene, cfg, st), _glint_key(st), st.cends, st.cverts))
+
+
 def glint_connections(scene: Scene, cfg: RenderConfig, st: PassState) -> PassState:
     if not glints.applies(scene):  # no water, or no light a glint can show
         return st
-    key = jax.random.fold_in(jax.random.fold_in(st.key, glints.STREAM), st.chunk)
-    val, bad = glints.glints(scene, cfg, _path_pixels(scene, cfg, st), key)
+    val, bad = glints.glints(scene, cfg, _path_pixels(scene, cfg, st), _glint_key(st),
+                             found=st.glint_roots)
     st = _add(st, {Technique("glint", 1, 1): val})
     return dataclasses.replace(st, bad=st.bad + bad)
 
@@ -510,6 +525,8 @@ def pass_stages(cfg: RenderConfig, image_only: bool = False) -> list[tuple[str, 
     stages.append(("subpaths", subpaths))
     if tech.weighted:
         stages.append(("mis partials", mis_partials))
+    if cam and tech.emitter_hits and cfg.glints:
+        stages.append(("glint roots", glint_roots))
     if cam and tech.emitter_hits and tech.merging != "first":
         stages.append(("emitter hits", emitter_hits))
     if cam and tech.emitter_hits and cfg.glints:

@@ -53,3 +53,7 @@ def test_pass_stages_follow_the_techniques():
     assert names["ppm"].index("merging") < names["ppm"].index("film")
     assert "mis partials" not in names["ppm"]  # ppm weights without partial sums
     assert names["vcm"].index("vertex connection") < names["vcm"].index("merging")
+    # glints: their roots are found once, before the emitter hits that take a share of
+    # them and the technique that adds them
+    glint = [n for n, _ in pass_stages(jaxvcm.RenderConfig(algorithm="vcm", glints=True))]
+    assert glint.index("glint roots") < glint.index("emitter hits") < glint.index("glints")
