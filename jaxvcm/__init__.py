@@ -31,6 +31,7 @@ from ._render import render_pass as render_pass
 
 # ---- host-side drivers
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
+from ._host_memory import reuse_host_buffers as reuse_host_buffers
 from ._render import render as render
 from ._hosts import initialize as initialize_processes
 from ._render import render_pass_host as render_pass_host

@@ -37,6 +37,7 @@ import numpy as np
 import jaxvcm
 
 from . import _fit, _hosts, _io, _signals
+from ._host_memory import reuse_host_buffers as _reuse_host_buffers
 from ._compilation_cache import enable_compilation_cache as _enable_compilation_cache
 from ._config import ALGORITHMS, MAX_DEPTH, MAX_RADIUS, RenderConfig
 from ._devices import resolve_devices
@@ -587,7 +588,10 @@ def entry() -> None:
     After an interrupt (status 130 or 143) the outputs are already complete on disk, so the
     process leaves at once instead of tearing down the interpreter: a SIGINT that lands
     while XLA worker threads are busy (a pass in flight, a compilation) could otherwise
-    keep the process alive for as long as they take."""
+    keep the process alive for as long as they take. `render` and `bench` run with the
+    passes' host buffers reused (`_host_memory`: set before the runtime's threads start)."""
+    if sys.argv[1:2] in (["render"], ["bench"]):
+        _reuse_host_buffers()
     rc = main()
     if rc in (130, 143):
         sys.stdout.flush()
